@@ -1,0 +1,127 @@
+"""Alg. 2 (generate_data): sample start states, costates on H* = 0 and integrate.
+
+Every intermediate RK4 step of a simulation is a data point (paper Section 3), and a
+simulation stops when its cost exceeds ``max_cost`` or its state leaves the ball of radius
+``max_state_distance`` around its start (paper Experiments: 2 and 1.5).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from rrtcolearn.data.dataset import Dataset
+from rrtcolearn.integrate import rollout_batch
+from rrtcolearn.systems.base import System
+
+
+@dataclass(frozen=True)
+class GenerationStats:
+    simulations: int
+    invalid_costates: int
+    empty_simulations: int
+    points: int
+
+
+def sample_starts(system: System, rng: np.random.Generator, n: int,
+                  w: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Sample n start states, costate parameters and costates; returns (x0, p, lam, valid)."""
+    x0 = rng.uniform(system.state_low, system.state_high, size=(n, system.n_states))
+    p = rng.uniform(system.param_low, system.param_high, size=(n, system.n_params))
+    lam, valid = system.costate_from_params(x0, p, w)
+    return x0, p, lam, valid
+
+
+def simulate_chunk(
+    system: System,
+    seed: np.random.SeedSequence | int,
+    n_simulations: int,
+    first_index: int,
+    *,
+    time_weight: float,
+    dt: float,
+    max_cost: float,
+    max_state_distance: float,
+    u_max: float | None = None,
+) -> tuple[Dataset, GenerationStats]:
+    """Generate the data points of ``n_simulations`` simulations from one seed."""
+    rng = np.random.default_rng(seed)
+    n = system.n_states
+    x0, p, lam, valid = sample_starts(system, rng, n_simulations, time_weight)
+    sim_index = first_index + np.flatnonzero(valid)
+    x0, p, lam = x0[valid], p[valid], lam[valid]
+    z0 = np.hstack([x0, lam, np.zeros((len(x0), 1))])
+    # cost >= w*t bounds every simulation's duration
+    max_steps = int(np.ceil(max_cost / (time_weight * dt))) + 1 if time_weight > 0 else 10_000
+    states, costs, lengths = rollout_batch(
+        system.rhs, z0, time_weight, dt, max_steps, max_cost, max_state_distance, n,
+        u_index=2 * n - 1, u_max=u_max,
+    )
+    mask = np.arange(max_steps)[None, :] < lengths[:, None]
+    rows, steps = np.nonzero(mask)
+    data = Dataset(
+        x0=x0[rows],
+        x1=states[rows, steps],
+        cost=costs[rows, steps],
+        params=p[rows],
+        duration=(steps + 1) * dt,
+        costate=lam[rows],
+        simulation=sim_index[rows].astype(np.int64),
+    )
+    stats = GenerationStats(
+        simulations=n_simulations,
+        invalid_costates=int(n_simulations - valid.sum()),
+        empty_simulations=int((lengths == 0).sum()),
+        points=len(data),
+    )
+    return data, stats
+
+
+def concatenate(parts: list[Dataset]) -> Dataset:
+    """Rows of several datasets, in order."""
+    arrays = [p.arrays() for p in parts]
+    return Dataset.from_arrays({k: np.concatenate([a[k] for a in arrays]) for k in arrays[0]})
+
+
+def generate_data(
+    system: System,
+    seed: int,
+    n_simulations: int,
+    *,
+    time_weight: float = 1.0,
+    dt: float = 0.01,
+    max_cost: float = 2.0,
+    max_state_distance: float = 1.5,
+    chunk_size: int = 2000,
+    u_max: float | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> tuple[Dataset, GenerationStats]:
+    """Alg. 2 over ``n_simulations`` simulations in fixed-size chunks.
+
+    Chunk c uses ``SeedSequence(seed).spawn(n_chunks)[c]``, so the dataset depends on the seed
+    and ``chunk_size`` only, never on how chunks are scheduled. ``progress(k)`` is called with
+    the number of simulations finished after each chunk.
+    """
+    n_chunks = max(1, -(-n_simulations // chunk_size))
+    seeds = np.random.SeedSequence(seed).spawn(n_chunks)
+    parts, stats = [], []
+    for c, ss in enumerate(seeds):
+        first = c * chunk_size
+        count = min(chunk_size, n_simulations - first)
+        data, st = simulate_chunk(
+            system, ss, count, first, time_weight=time_weight, dt=dt, max_cost=max_cost,
+            max_state_distance=max_state_distance, u_max=u_max,
+        )
+        parts.append(data)
+        stats.append(st)
+        if progress is not None:
+            progress(count)
+    total = GenerationStats(
+        simulations=sum(s.simulations for s in stats),
+        invalid_costates=sum(s.invalid_costates for s in stats),
+        empty_simulations=sum(s.empty_simulations for s in stats),
+        points=sum(s.points for s in stats),
+    )
+    return concatenate(parts), total

@@ -1,0 +1,189 @@
+"""k-NN learners with a fit/predict contract (paper Section 2 and Section 5).
+
+Each learner stores hyper-parameters in ``__init__``, learns in ``fit(X, y)`` (returns self)
+and keeps learned state in attributes ending in ``_``. ``predict_from_neighbours`` lets
+`LearnedFunctions` answer J, U and V from a single neighbour query, which is what the planner
+needs per iteration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import maximum_filter
+
+from rrtcolearn.learn.neighbours import NeighbourIndex
+
+
+class _KNNBase:
+    def __init__(self, n_neighbors: int = 3):
+        self.n_neighbors = n_neighbors
+
+    def _fit_index(self, X: np.ndarray, index: NeighbourIndex | None) -> None:
+        if self.n_neighbors < 1:
+            raise ValueError("n_neighbors must be at least 1")
+        if len(X) < self.n_neighbors:
+            raise ValueError(f"need at least {self.n_neighbors} samples, got {len(X)}")
+        self.index_ = index if index is not None else NeighbourIndex(X)
+
+    def kneighbors(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distances and indices (Q, m) of the m nearest training inputs."""
+        return self.index_.query(X, self.n_neighbors)
+
+    def predict(self, X: np.ndarray) -> np.ndarray:
+        return self.predict_from_neighbours(*self.kneighbors(X))
+
+
+class CostToGoRegressor(_KNNBase):
+    """J(x0, x1): mean cost of the m nearest training inputs, saturated to ``bounds``.
+
+    The saturation at [1e-5, 1e5] is the paper's (Section 5): it keeps the learned distance
+    within positive multiples of the Euclidean one.
+    """
+
+    def __init__(self, n_neighbors: int = 3, bounds: tuple[float, float] = (1e-5, 1e5)):
+        super().__init__(n_neighbors)
+        self.bounds = bounds
+
+    def fit(self, X: np.ndarray, y: np.ndarray, index: NeighbourIndex | None = None):
+        self._fit_index(X, index)
+        self.cost_ = np.asarray(y, dtype=np.float64)
+        return self
+
+    def predict_from_neighbours(self, dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        return np.clip(self.cost_[idx].mean(axis=1), *self.bounds)
+
+
+class SteeringRegressor(_KNNBase):
+    """U(x0, x1): costate parameters and duration, averaged over the m nearest inputs.
+
+    Circular parameters (the pendulum's phi) are averaged on the circle: the mean direction of
+    the unit vectors, mapped back into the parameter's domain, so neighbours on either side of
+    the branch cut average to a nearby angle instead of the opposite one.
+    """
+
+    def __init__(self, n_neighbors: int = 3, circular: tuple[bool, ...] = (),
+                 low: tuple[float, ...] = (), high: tuple[float, ...] = ()):
+        super().__init__(n_neighbors)
+        self.circular = circular
+        self.low = low
+        self.high = high
+
+    def fit(self, X: np.ndarray, y: np.ndarray, index: NeighbourIndex | None = None):
+        self._fit_index(X, index)
+        y = np.asarray(y, dtype=np.float64)
+        self.targets_ = y
+        circ = np.zeros(y.shape[1], dtype=bool)
+        circ[: len(self.circular)] = self.circular
+        self.circular_ = circ
+        self.low_ = np.asarray(self.low + (0.0,) * (y.shape[1] - len(self.low)))
+        self.period_ = np.asarray(self.high + (0.0,) * (y.shape[1] - len(self.high))) - self.low_
+        # unit-circle embedding of the circular columns, precomputed once
+        angle = 2.0 * np.pi * (y[:, circ] - self.low_[circ]) / self.period_[circ]
+        self.cos_, self.sin_ = np.cos(angle), np.sin(angle)
+        return self
+
+    def predict_from_neighbours(self, dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        out = self.targets_[idx].mean(axis=1)
+        c = self.circular_
+        if c.any():
+            mean = np.arctan2(self.sin_[idx].mean(axis=1), self.cos_[idx].mean(axis=1))
+            out[:, c] = self.low_[c] + np.mod(mean, 2.0 * np.pi) * self.period_[c] / (2.0 * np.pi)
+        return out
+
+
+class ValidityClassifier(_KNNBase):
+    """V(x0, x1): true when the summed distance to the m nearest inputs is <= ``threshold``.
+
+    Queries far from every training input are where k-NN extrapolates badly (Section 5).
+    """
+
+    def __init__(self, n_neighbors: int = 3, threshold: float = 0.3):
+        super().__init__(n_neighbors)
+        self.threshold = threshold
+
+    def fit(self, X: np.ndarray, y: np.ndarray | None = None,
+            index: NeighbourIndex | None = None):
+        self._fit_index(X, index)
+        self._fit_coverage(np.asarray(X, dtype=np.float64))
+        return self
+
+    def _fit_coverage(self, X: np.ndarray) -> None:
+        # A valid query has its nearest neighbour within threshold/m. With cells of that size,
+        # such a neighbour lies in the query's cell or an adjacent one, so a one-cell dilation
+        # of the occupied cells is a conservative, exact-to-the-result prefilter.
+        cell = self.threshold / self.n_neighbors
+        lo = X.min(axis=0) - cell
+        dims = np.floor((X.max(axis=0) - lo) / cell).astype(np.int64) + 2
+        self.coverage_ = None
+        if np.prod(dims.astype(np.float64)) > 5e7:  # too fine to store: skip the prefilter
+            return
+        occupied = np.zeros(tuple(dims), dtype=bool)
+        occupied[tuple(np.floor((X - lo) / cell).astype(np.int64).T)] = True
+        self.coverage_ = maximum_filter(occupied, size=3, mode="constant", cval=False)
+        self.coverage_lo_ = lo
+        self.coverage_cell_ = cell
+
+    def may_be_valid(self, X: np.ndarray) -> np.ndarray:
+        """(Q,) False only where the query is certainly invalid; cheap, used to prune."""
+        if self.coverage_ is None:
+            return np.ones(len(X), dtype=bool)
+        c = np.floor((X - self.coverage_lo_) / self.coverage_cell_).astype(np.int64)
+        dims = np.asarray(self.coverage_.shape)
+        inside = np.all((c >= 0) & (c < dims), axis=1)
+        out = np.zeros(len(X), dtype=bool)
+        out[inside] = self.coverage_[tuple(c[inside].T)]
+        return out
+
+    def predict_from_neighbours(self, dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        return dist.sum(axis=1) <= self.threshold
+
+
+@dataclass
+class LearnedFunctions:
+    """J, U and V fitted on one dataset and answered from one shared neighbour query."""
+
+    cost_to_go: CostToGoRegressor
+    steering: SteeringRegressor
+    validity: ValidityClassifier
+
+    @classmethod
+    def fit(cls, X: np.ndarray, cost: np.ndarray, steering_targets: np.ndarray, *,
+            n_neighbors: int = 3, cost_bounds: tuple[float, float] = (1e-5, 1e5),
+            validity_threshold: float = 0.3, circular: tuple[bool, ...] = (),
+            low: tuple[float, ...] = (), high: tuple[float, ...] = ()) -> LearnedFunctions:
+        index = NeighbourIndex(X)
+        return cls(
+            CostToGoRegressor(n_neighbors, cost_bounds).fit(X, cost, index),
+            SteeringRegressor(n_neighbors, circular, low, high).fit(X, steering_targets, index),
+            ValidityClassifier(n_neighbors, validity_threshold).fit(X, None, index),
+        )
+
+    @property
+    def n_neighbors(self) -> int:
+        return self.cost_to_go.n_neighbors
+
+    def query(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(J (Q,), U (Q, k+1), valid (Q,)) for queries X (Q, 2n)."""
+        dist, idx = self.cost_to_go.kneighbors(X)
+        return (
+            self.cost_to_go.predict_from_neighbours(dist, idx),
+            self.steering.predict_from_neighbours(dist, idx),
+            self.validity.predict_from_neighbours(dist, idx),
+        )
+
+    def query_valid(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rows of X (Q, 2n) that V accepts, with their J and their neighbour indices.
+
+        A query is valid only if all its m neighbours lie within the validity threshold, so
+        the neighbour search is bounded by it: invalid queries cost little. Returns
+        (valid rows (V,), J (V,), neighbour indices (V, m)); U follows from
+        ``steering.predict_from_neighbours`` for the row the caller picks.
+        """
+        rows = np.flatnonzero(self.validity.may_be_valid(X))
+        dist, idx = self.cost_to_go.index_.query(X[rows], self.n_neighbors,
+                                                 max_distance=self.validity.threshold)
+        ok = dist.sum(axis=1) <= self.validity.threshold
+        rows, dist, idx = rows[ok], dist[ok], idx[ok]
+        return rows, self.cost_to_go.predict_from_neighbours(dist, idx), idx

@@ -1,0 +1,60 @@
+"""A planning query: start state, goal region, and the state box it must lie in."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rrtcolearn.systems.base import System
+
+
+class ProblemError(ValueError):
+    """A planning query that cannot be planned (bad start, goal or tolerance)."""
+
+
+def check_state(system: System, value, what: str) -> np.ndarray:
+    """Validate a state: the right length, finite, inside the system's sampling box."""
+    try:
+        x = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ProblemError(f"{what} must be {system.n_states} numbers, got {value!r}") from None
+    if x.shape != (system.n_states,):
+        raise ProblemError(f"{what} must have {system.n_states} coordinates "
+                           f"({', '.join(system.state_names)}), got {x.size}")
+    if not np.all(np.isfinite(x)):
+        raise ProblemError(f"{what} must be finite, got {x.tolist()}")
+    outside = (x < system.state_low) | (x > system.state_high)
+    if outside.any():
+        j = int(np.flatnonzero(outside)[0])
+        raise ProblemError(
+            f"{what} {system.state_names[j]}={x[j]:g} is outside the state box "
+            f"[{system.state_low[j]:g}, {system.state_high[j]:g}]")
+    return x
+
+
+@dataclass(frozen=True)
+class PlanningProblem:
+    """Plan from ``start`` to the ball of radius ``goal_tolerance`` around ``goal``.
+
+    The goal test is the Euclidean distance in state coordinates (paper Experiments).
+    """
+
+    system: System
+    start: np.ndarray
+    goal: np.ndarray
+    goal_tolerance: float = 0.1
+
+    @classmethod
+    def create(cls, system: System, start, goal, goal_tolerance: float = 0.1) -> PlanningProblem:
+        """Validated problem; raises ProblemError with a one-line reason."""
+        start = check_state(system, start, "start")
+        goal = check_state(system, goal, "goal")
+        tol = float(goal_tolerance)
+        if not np.isfinite(tol) or tol <= 0:
+            raise ProblemError(f"goal tolerance must be a positive number, got {goal_tolerance!r}")
+        return cls(system, start, goal, tol)
+
+    def goal_distance(self, x: np.ndarray) -> np.ndarray:
+        """Euclidean distance of states (N, n) to the goal."""
+        return np.linalg.norm(np.atleast_2d(x) - self.goal, axis=1)

@@ -1,0 +1,156 @@
+"""RRT-CoLearn (Alg. 1): learned cost-to-go as distance, learned costate as steering."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import ndtr, ndtri
+
+from rrtcolearn.integrate import rollout
+from rrtcolearn.learn.models import LearnedFunctions
+from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.termination import TerminationCondition
+from rrtcolearn.planning.tree import Plan, PlannerData
+
+
+@dataclass(frozen=True)
+class PlannerSettings:
+    """Online parameters (paper Section 5 and Experiments; goal_bias is not stated there).
+
+    sigma / sigma_goal : standard deviation of the steering-parameter sampling around the
+        prediction, for ordinary targets / when the target is the goal (pi/4, pi/2).
+    decimals : steering parameters are rounded to this many decimals (Section 5.1).
+    max_duration : upper bound of the duration's truncated normal (the data's longest segment).
+    reach : a tree node farther than this (Euclidean) from the target cannot give a valid
+        query; such nodes are pruned before the neighbour query.
+    """
+
+    time_weight: float = 1.0
+    dt: float = 0.01
+    goal_bias: float = 0.05
+    sigma: float = np.pi / 4
+    sigma_goal: float = np.pi / 2
+    decimals: int = 2
+    max_duration: float = 2.0
+    reach: float = np.inf
+    max_resample: int = 10
+
+
+def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
+    """One draw of N(mean, sigma) truncated to [lo, hi] by inverting the CDF."""
+    a, b = ndtr((lo - mean) / sigma), ndtr((hi - mean) / sigma)
+    if b - a < 1e-12:  # mean far outside the bounds: the nearest bound is the limit
+        return lo if mean < lo else hi
+    return float(np.clip(mean + sigma * ndtri(a + (b - a) * rng.random()), lo, hi))
+
+
+class RRTCoLearn:
+    """Alg. 1 with the learned J, U, V; needs no local planner.
+
+    Each iteration samples a target (the goal with probability ``goal_bias``, else uniform in
+    the system's state box), keeps the tree nodes whose query (node, target) is valid under V,
+    expands the one with the least predicted cost-to-go J, draws steering parameters around
+    U's prediction and integrates the state+costate ODEs. An edge that passes through the goal
+    region is cut at its first state inside it.
+    """
+
+    def __init__(self, problem: PlanningProblem, model: LearnedFunctions,
+                 settings: PlannerSettings | None = None):
+        self.problem = problem
+        self.model = model
+        self.settings = settings or PlannerSettings()
+        sys = problem.system
+        self._circular = np.zeros(sys.n_params, dtype=bool)
+        self._circular[: len(sys.param_circular)] = sys.param_circular
+
+    def _sample_params(self, rng, prediction: np.ndarray, sigma: float) -> np.ndarray:
+        sys, s = self.problem.system, self.settings
+        k = sys.n_params
+        out = np.empty(k + 1)
+        for j in range(k):
+            lo, hi = sys.param_low[j], sys.param_high[j]
+            if self._circular[j]:
+                v = prediction[j] + sigma * rng.standard_normal()
+                v = np.round(v, s.decimals)
+                out[j] = lo + np.mod(v - lo, hi - lo)
+            else:
+                out[j] = np.round(_truncnorm(rng, prediction[j], sigma, lo, hi), s.decimals)
+        out[k] = np.round(_truncnorm(rng, prediction[k], sigma, s.dt, s.max_duration), s.decimals)
+        return out
+
+    def solve(self, termination: TerminationCondition, seed: int | np.random.SeedSequence = 0
+              ) -> Plan:
+        """Grow the tree until a node reaches the goal region or ``termination`` says stop."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        rng = np.random.default_rng(seed)
+        n = sys.n_states
+        tree = PlannerData(prob.start, sys.n_params)
+        shifts = np.empty((256, n))
+        shifts[0] = sys.wrap_shift(prob.start[None])[0]
+        lam = np.empty(n)
+        z0 = np.empty(2 * n + 1)
+        goal_node = -1
+        iterations = 0
+        cpu0 = time.thread_time()
+        termination.start()
+        if prob.goal_distance(prob.start)[0] <= prob.goal_tolerance:
+            goal_node = 0
+        while goal_node < 0 and not termination(iterations):
+            iterations += 1
+            to_goal = rng.random() < s.goal_bias
+            target = prob.goal if to_goal else rng.uniform(sys.state_low, sys.state_high)
+            m = tree.n_nodes
+            states = tree.states[:m]
+            near = np.flatnonzero(np.linalg.norm(states - target, axis=1) <= s.reach)
+            if near.size == 0:
+                continue
+            sh = shifts[near]
+            query = np.hstack([states[near] + sh, target + sh])
+            rows, cost, neighbours = self.model.query_valid(query)
+            if rows.size == 0:
+                continue
+            best = int(np.argmin(cost))
+            parent = int(near[rows[best]])
+            prediction = self.model.steering.predict_from_neighbours(
+                None, neighbours[best : best + 1])[0]
+            x0 = states[parent]
+            sigma = s.sigma_goal if to_goal else s.sigma
+            for _ in range(s.max_resample):
+                params = self._sample_params(rng, prediction, sigma)
+                if sys.costate_from_params_jit(x0, params[:-1], s.time_weight, lam):
+                    break
+            else:
+                continue
+            steps = max(1, round(params[-1] / s.dt))
+            z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
+            traj = rollout(sys.rhs, z0, s.time_weight, s.dt, steps)
+            if not np.isfinite(traj).all():
+                continue
+            hit = np.flatnonzero(prob.goal_distance(traj[1:, :n]) <= prob.goal_tolerance)
+            if hit.size:
+                steps = int(hit[0]) + 1
+                traj = traj[: steps + 1]
+                params[-1] = steps * s.dt
+            node = tree.add(traj[-1, :n], parent, lam, params[:-1], steps * s.dt,
+                            traj[-1, 2 * n], traj[:, :n])
+            if node == shifts.shape[0]:
+                shifts = np.concatenate([shifts, np.empty_like(shifts)])
+            shifts[node] = sys.wrap_shift(traj[-1:, :n])[0]
+            if hit.size:
+                goal_node = node
+        cpu = time.thread_time() - cpu0
+        wall = termination.elapsed()
+        if goal_node >= 0:
+            status, end = "exact", goal_node
+        else:
+            dist = prob.goal_distance(tree.states[: tree.n_nodes])
+            end = int(np.argmin(dist))
+            status = "approximate" if end != 0 else "timeout"
+        return Plan(
+            system=sys.name, start=prob.start, goal=prob.goal,
+            goal_tolerance=prob.goal_tolerance, time_weight=s.time_weight, dt=s.dt,
+            status=status, planning_time_s=wall, planning_cpu_s=cpu, iterations=iterations,
+            tree=tree, path_nodes=tree.path_to(end),
+        )

@@ -1,0 +1,131 @@
+"""The planner's tree (OMPL's PlannerData) and the plan it yields."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class PlannerData:
+    """A growing tree: node states, parent links, and the edge that reached each node.
+
+    Edge i (into node i) starts at ``states[parents[i]]`` with ``costates[i]`` and runs for
+    ``durations[i]`` seconds at cost ``costs[i]``; ``params[i]`` are the steering parameters
+    that produced it. ``trajectories[i]`` holds its integrated states, for drawing.
+    """
+
+    def __init__(self, root: np.ndarray, n_params: int, capacity: int = 256):
+        n = root.shape[0]
+        self.n_nodes = 0
+        self.states = np.empty((capacity, n))
+        self.parents = np.empty(capacity, dtype=np.int64)
+        self.costates = np.empty((capacity, n))
+        self.params = np.empty((capacity, n_params))
+        self.durations = np.empty(capacity)
+        self.costs = np.empty(capacity)
+        self.trajectories: list[np.ndarray] = []
+        self.add(root, -1, np.full(n, np.nan), np.full(n_params, np.nan), 0.0, 0.0, root[None])
+
+    def _grow(self) -> None:
+        for name in ("states", "parents", "costates", "params", "durations", "costs"):
+            old = getattr(self, name)
+            new = np.empty((2 * old.shape[0], *old.shape[1:]), dtype=old.dtype)
+            new[: self.n_nodes] = old[: self.n_nodes]
+            setattr(self, name, new)
+
+    def add(self, state, parent, costate, params, duration, cost, trajectory) -> int:
+        if self.n_nodes == self.states.shape[0]:
+            self._grow()
+        i = self.n_nodes
+        self.states[i] = state
+        self.parents[i] = parent
+        self.costates[i] = costate
+        self.params[i] = params
+        self.durations[i] = duration
+        self.costs[i] = cost
+        self.trajectories.append(trajectory)
+        self.n_nodes += 1
+        return i
+
+    def path_to(self, node: int) -> list[int]:
+        """Node indices from the root to ``node``."""
+        path = []
+        while node >= 0:
+            path.append(node)
+            node = int(self.parents[node])
+        return path[::-1]
+
+
+@dataclass
+class Plan:
+    """What a planning query returns; ``to_dict`` is the plan-file content."""
+
+    system: str
+    start: np.ndarray
+    goal: np.ndarray
+    goal_tolerance: float
+    time_weight: float
+    dt: float
+    status: str  # "exact", "approximate" or "timeout"
+    planning_time_s: float
+    planning_cpu_s: float
+    iterations: int
+    tree: PlannerData
+    path_nodes: list[int] = field(default_factory=list)
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def solved(self) -> bool:
+        return self.status == "exact"
+
+    @property
+    def nodes(self) -> int:
+        return self.tree.n_nodes
+
+    @property
+    def path_cost(self) -> float:
+        return float(sum(self.tree.costs[i] for i in self.path_nodes[1:]))
+
+    @property
+    def path_duration(self) -> float:
+        return float(sum(self.tree.durations[i] for i in self.path_nodes[1:]))
+
+    def edges(self) -> list[dict]:
+        t = self.tree
+        return [
+            {
+                "from": t.states[t.parents[i]].tolist(),
+                "to": t.states[i].tolist(),
+                "costate": t.costates[i].tolist(),
+                "params": t.params[i].tolist(),
+                "duration": float(t.durations[i]),
+                "cost": float(t.costs[i]),
+            }
+            for i in self.path_nodes[1:]
+        ]
+
+    def to_dict(self) -> dict:
+        t = self.tree
+        n = t.n_nodes
+        return {
+            "system": self.system,
+            "start": self.start.tolist(),
+            "goal": self.goal.tolist(),
+            "goal_tolerance": self.goal_tolerance,
+            "time_weight": self.time_weight,
+            "dt": self.dt,
+            "solved": self.solved,
+            "status": self.status,
+            "planning_time_s": self.planning_time_s,
+            "planning_cpu_s": self.planning_cpu_s,
+            "iterations": self.iterations,
+            "nodes": n,
+            "path_cost": self.path_cost,
+            "path_duration": self.path_duration,
+            "final_goal_distance": float(np.linalg.norm(
+                t.states[self.path_nodes[-1]] - self.goal)) if self.path_nodes else None,
+            **self.extra,
+            "path": self.edges(),
+            "tree": {"states": t.states[:n].tolist(), "parents": t.parents[:n].tolist()},
+        }

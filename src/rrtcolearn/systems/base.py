@@ -1,0 +1,77 @@
+"""The `System` description: dynamics, cost and Pontryagin machinery of one control system."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class System:
+    """An input-affine control system with running cost ``w + u^T R u / 2``.
+
+    The steering parameters of an edge are the costate parameters (``param_names``) plus the
+    duration; the costate at the edge start is a function of the start state and those
+    parameters that satisfies H* = 0 by construction (paper Eq. 8).
+
+    Attributes
+    ----------
+    name : registry name.
+    state_names, input_names : coordinate names, ``n`` and ``m`` of them.
+    state_low, state_high : (n,) box that start states are sampled from (paper: Experiments).
+    angle_dims : state coordinates that are angles with period 2*pi (the dynamics are
+        periodic in them, so queries may be shifted by whole turns).
+    param_names, param_low, param_high : costate parameters and their sampling domain.
+    param_circular : which parameters live on a circle of period ``param_high - param_low``.
+    rhs : compiled ``rhs(z, w, out)`` for ``z = (x, lambda, cost)`` of length ``2n+1``:
+        the state+costate ODE under u* and the running cost as the last entry.
+    costate_from_params : ``(x (N,n), p (N,k), w) -> (lambda (N,n), valid (N,))``.
+    costate_from_params_jit : compiled scalar version for one state, used by the planner.
+    optimal_control : ``(x (N,n), lambda (N,n)) -> u* (N,m)``, u* = argmin_u H.
+    hamiltonian : ``(x, lambda, u, w) -> H (N,)``.
+    """
+
+    name: str
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    state_low: np.ndarray
+    state_high: np.ndarray
+    angle_dims: tuple[int, ...]
+    param_names: tuple[str, ...]
+    param_low: np.ndarray
+    param_high: np.ndarray
+    param_circular: tuple[bool, ...]
+    rhs: Callable
+    costate_from_params: Callable
+    costate_from_params_jit: Callable
+    optimal_control: Callable
+    hamiltonian: Callable
+    description: str = ""
+    defaults: dict = field(default_factory=dict)
+
+    @property
+    def n_states(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def n_inputs(self) -> int:
+        return len(self.input_names)
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+    def wrap_shift(self, x: np.ndarray) -> np.ndarray:
+        """Shift (N, n) states by whole turns so angle coordinates lie in the sampling box.
+
+        Returns the (N, n) shift that was added; adding the same shift to a paired target keeps
+        the optimal control problem unchanged because the dynamics are 2*pi-periodic in angles.
+        """
+        x = np.atleast_2d(x)
+        shift = np.zeros_like(x)
+        for j in self.angle_dims:
+            lo = self.state_low[j]
+            shift[:, j] = -2.0 * np.pi * np.floor((x[:, j] - lo) / (2.0 * np.pi))
+        return shift
