@@ -1,20 +1,28 @@
 """Compiled RK4 integration of the state+costate(+cost) ODEs.
 
-``z = (x, lambda, cost)`` of length ``2n+1``; ``rhs(z, w, out)`` comes from the system.
+``z = (x, lambda, cost)`` of length ``2n+1``; ``rhs(z, w, out)`` is the system's compiled
+right-hand side, writing the state+costate derivative and the running cost (last entry).
 Batched rollouts stop per row (paper Experiments: when the cost exceeds a bound or the state
 leaves a ball around its start), so no row costs more steps than it needs.
+
+numba can neither cache a function that receives another compiled function as an argument
+nor one that closes over it, so the kernels are kept as source and compiled into each system
+module's namespace by `define_kernels`, where they call that module's global ``rhs``.
 """
 
 from __future__ import annotations
 
-import math
-
-import numba
 import numpy as np
 
+_KERNELS = '''
+import math as _math
 
-@numba.njit(cache=True)
-def _rk4_step(rhs, z, w, dt, k1, k2, k3, k4, tmp, out):
+import numba as _numba
+import numpy as _np
+
+
+@_numba.njit(cache=True)
+def _rk4_step(z, w, dt, k1, k2, k3, k4, tmp, out):
     d = z.shape[0]
     rhs(z, w, k1)
     for i in range(d):
@@ -30,47 +38,47 @@ def _rk4_step(rhs, z, w, dt, k1, k2, k3, k4, tmp, out):
         out[i] = z[i] + dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
 
 
-@numba.njit(cache=True)
-def _rollout(rhs, z0, w, dt, n_steps):
+@_numba.njit(cache=True)
+def rollout_jit(z0, w, dt, n_steps):
     d = z0.shape[0]
-    traj = np.empty((n_steps + 1, d))
+    traj = _np.empty((n_steps + 1, d))
     traj[0] = z0
-    k1 = np.empty(d)
-    k2 = np.empty(d)
-    k3 = np.empty(d)
-    k4 = np.empty(d)
-    tmp = np.empty(d)
+    k1 = _np.empty(d)
+    k2 = _np.empty(d)
+    k3 = _np.empty(d)
+    k4 = _np.empty(d)
+    tmp = _np.empty(d)
     for s in range(n_steps):
-        _rk4_step(rhs, traj[s], w, dt, k1, k2, k3, k4, tmp, traj[s + 1])
+        _rk4_step(traj[s], w, dt, k1, k2, k3, k4, tmp, traj[s + 1])
     return traj
 
 
-@numba.njit(cache=True)
-def _rollout_batch(rhs, z0, w, dt, max_steps, max_cost, max_dist, n, u_index, u_max):
+@_numba.njit(cache=True)
+def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_index, u_max):
     n_sims, d = z0.shape
-    states = np.empty((n_sims, max_steps, n))
-    costs = np.empty((n_sims, max_steps))
-    lengths = np.zeros(n_sims, dtype=np.int64)
-    k1 = np.empty(d)
-    k2 = np.empty(d)
-    k3 = np.empty(d)
-    k4 = np.empty(d)
-    tmp = np.empty(d)
-    z = np.empty(d)
-    znew = np.empty(d)
+    states = _np.empty((n_sims, max_steps, n))
+    costs = _np.empty((n_sims, max_steps))
+    lengths = _np.zeros(n_sims, dtype=_np.int64)
+    k1 = _np.empty(d)
+    k2 = _np.empty(d)
+    k3 = _np.empty(d)
+    k4 = _np.empty(d)
+    tmp = _np.empty(d)
+    z = _np.empty(d)
+    znew = _np.empty(d)
     for i in range(n_sims):
         z[:] = z0[i]
         if u_max > 0.0 and abs(z[u_index]) > u_max:
             continue
         for s in range(max_steps):
-            _rk4_step(rhs, z, w, dt, k1, k2, k3, k4, tmp, znew)
+            _rk4_step(z, w, dt, k1, k2, k3, k4, tmp, znew)
             ok = True
             dist2 = 0.0
             for j in range(n):
                 dx = znew[j] - z0[i, j]
                 dist2 += dx * dx
             for j in range(d):
-                if not math.isfinite(znew[j]):
+                if not _math.isfinite(znew[j]):
                     ok = False
             if not ok or znew[d - 1] > max_cost or dist2 > max_dist * max_dist:
                 break
@@ -82,16 +90,25 @@ def _rollout_batch(rhs, z0, w, dt, max_steps, max_cost, max_dist, n, u_index, u_
             lengths[i] = s + 1
             z[:] = znew
     return states, costs, lengths
+'''
 
 
-def rollout(rhs, z0: np.ndarray, w: float, dt: float, n_steps: int) -> np.ndarray:
+def define_kernels(namespace: dict) -> None:
+    """Compile ``rollout_jit`` and ``rollout_batch_jit`` into a system module's namespace.
+
+    The module must define a compiled ``rhs(z, w, out)`` before calling this.
+    """
+    exec(compile(_KERNELS, namespace["__file__"], "exec"), namespace)
+
+
+def rollout(system, z0: np.ndarray, w: float, dt: float, n_steps: int) -> np.ndarray:
     """Integrate one ``z0`` (2n+1,) for ``n_steps`` RK4 steps; returns (n_steps+1, 2n+1)."""
-    return _rollout(rhs, np.ascontiguousarray(z0, dtype=np.float64), float(w), float(dt),
-                    int(n_steps))
+    return system.rollout_jit(np.ascontiguousarray(z0, dtype=np.float64), float(w), float(dt),
+                              int(n_steps))
 
 
 def rollout_batch(
-    rhs,
+    system,
     z0: np.ndarray,
     w: float,
     dt: float,
@@ -110,6 +127,7 @@ def rollout_batch(
     (S, max_steps, n), costs (S, max_steps) and lengths (S,): row i's first ``lengths[i]``
     steps are valid data points.
     """
-    return _rollout_batch(rhs, np.ascontiguousarray(z0, dtype=np.float64), float(w), float(dt),
-                          int(max_steps), float(max_cost), float(max_dist), int(n),
-                          int(u_index), float(u_max) if u_max is not None else -1.0)
+    return system.rollout_batch_jit(
+        np.ascontiguousarray(z0, dtype=np.float64), float(w), float(dt), int(max_steps),
+        float(max_cost), float(max_dist), int(n), int(u_index),
+        float(u_max) if u_max is not None else -1.0)

@@ -56,7 +56,7 @@ def simulate_chunk(
     # cost >= w*t bounds every simulation's duration
     max_steps = int(np.ceil(max_cost / (time_weight * dt))) + 1 if time_weight > 0 else 10_000
     states, costs, lengths = rollout_batch(
-        system.rhs, z0, time_weight, dt, max_steps, max_cost, max_state_distance, n,
+        system, z0, time_weight, dt, max_steps, max_cost, max_state_distance, n,
         u_index=2 * n - 1, u_max=u_max,
     )
     mask = np.arange(max_steps)[None, :] < lengths[:, None]
@@ -79,6 +79,13 @@ def simulate_chunk(
     return data, stats
 
 
+def _fresh(seed: int | np.random.SeedSequence) -> np.random.SeedSequence:
+    """A SeedSequence that has spawned nothing yet, so spawning is reproducible."""
+    if isinstance(seed, np.random.SeedSequence):
+        return np.random.SeedSequence(seed.entropy, spawn_key=seed.spawn_key)
+    return np.random.SeedSequence(seed)
+
+
 def concatenate(parts: list[Dataset]) -> Dataset:
     """Rows of several datasets, in order."""
     arrays = [p.arrays() for p in parts]
@@ -87,7 +94,7 @@ def concatenate(parts: list[Dataset]) -> Dataset:
 
 def generate_data(
     system: System,
-    seed: int,
+    seed: int | np.random.SeedSequence,
     n_simulations: int,
     *,
     time_weight: float = 1.0,
@@ -105,7 +112,7 @@ def generate_data(
     the number of simulations finished after each chunk.
     """
     n_chunks = max(1, -(-n_simulations // chunk_size))
-    seeds = np.random.SeedSequence(seed).spawn(n_chunks)
+    seeds = _fresh(seed).spawn(n_chunks)
     parts, stats = [], []
     for c, ss in enumerate(seeds):
         first = c * chunk_size

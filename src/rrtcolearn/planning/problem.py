@@ -55,6 +55,16 @@ class PlanningProblem:
             raise ProblemError(f"goal tolerance must be a positive number, got {goal_tolerance!r}")
         return cls(system, start, goal, tol)
 
+    def within_bounds(self, x: np.ndarray) -> np.ndarray:
+        """(N,) True where states (N, n) lie inside the state box in its non-angle coordinates.
+
+        Angles are unbounded: the dynamics are periodic in them.
+        """
+        x = np.atleast_2d(x)
+        dims = self.system.bounded_dims
+        return np.all((x[:, dims] >= self.system.state_low[dims])
+                      & (x[:, dims] <= self.system.state_high[dims]), axis=1)
+
     def goal_distance(self, x: np.ndarray) -> np.ndarray:
         """Euclidean distance of states (N, n) to the goal."""
         return np.linalg.norm(np.atleast_2d(x) - self.goal, axis=1)

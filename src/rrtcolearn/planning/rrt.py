@@ -25,6 +25,8 @@ class PlannerSettings:
     max_duration : upper bound of the duration's truncated normal (the data's longest segment).
     reach : a tree node farther than this (Euclidean) from the target cannot give a valid
         query; such nodes are pruned before the neighbour query.
+    enforce_bounds : reject edges that leave the state box in a non-angle coordinate (the
+        state bounds OMPL planners are given too).
     """
 
     time_weight: float = 1.0
@@ -36,6 +38,7 @@ class PlannerSettings:
     max_duration: float = 2.0
     reach: float = np.inf
     max_resample: int = 10
+    enforce_bounds: bool = True
 
 
 def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
@@ -125,8 +128,10 @@ class RRTCoLearn:
                 continue
             steps = max(1, round(params[-1] / s.dt))
             z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
-            traj = rollout(sys.rhs, z0, s.time_weight, s.dt, steps)
+            traj = rollout(sys, z0, s.time_weight, s.dt, steps)
             if not np.isfinite(traj).all():
+                continue
+            if self.settings.enforce_bounds and not prob.within_bounds(traj[1:, :n]).all():
                 continue
             hit = np.flatnonzero(prob.goal_distance(traj[1:, :n]) <= prob.goal_tolerance)
             if hit.size:

@@ -27,6 +27,7 @@ class System:
     param_circular : which parameters live on a circle of period ``param_high - param_low``.
     rhs : compiled ``rhs(z, w, out)`` for ``z = (x, lambda, cost)`` of length ``2n+1``:
         the state+costate ODE under u* and the running cost as the last entry.
+    rollout_jit, rollout_batch_jit : the RK4 kernels of ``integrate`` compiled for ``rhs``.
     costate_from_params : ``(x (N,n), p (N,k), w) -> (lambda (N,n), valid (N,))``.
     costate_from_params_jit : compiled scalar version for one state, used by the planner.
     optimal_control : ``(x (N,n), lambda (N,n)) -> u* (N,m)``, u* = argmin_u H.
@@ -44,6 +45,8 @@ class System:
     param_high: np.ndarray
     param_circular: tuple[bool, ...]
     rhs: Callable
+    rollout_jit: Callable
+    rollout_batch_jit: Callable
     costate_from_params: Callable
     costate_from_params_jit: Callable
     optimal_control: Callable
@@ -62,6 +65,11 @@ class System:
     @property
     def n_params(self) -> int:
         return len(self.param_names)
+
+    @property
+    def bounded_dims(self) -> np.ndarray:
+        """Indices of the state coordinates that are not angles."""
+        return np.array([j for j in range(self.n_states) if j not in self.angle_dims], dtype=int)
 
     def wrap_shift(self, x: np.ndarray) -> np.ndarray:
         """Shift (N, n) states by whole turns so angle coordinates lie in the sampling box.

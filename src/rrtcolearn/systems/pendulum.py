@@ -22,6 +22,7 @@ import math
 import numba
 import numpy as np
 
+from rrtcolearn.integrate import define_kernels
 from rrtcolearn.systems.base import System
 
 
@@ -33,6 +34,10 @@ def _rhs(z, w, out):
     out[2] = -l_om * math.cos(theta)
     out[3] = -l_th
     out[4] = w + 0.5 * l_om * l_om
+
+
+rhs = _rhs
+define_kernels(globals())  # rollout_jit, rollout_batch_jit
 
 
 def costate_from_params(x: np.ndarray, p: np.ndarray, w: float) -> tuple[np.ndarray, np.ndarray]:
@@ -71,7 +76,8 @@ def hamiltonian(x: np.ndarray, lam: np.ndarray, u: np.ndarray, w: float) -> np.n
 
 
 def make_pendulum() -> System:
-    """The paper's pendulum: theta0 ~ U(-3pi/2, pi/2), omega0 ~ U(-pi, pi), phi ~ U(-pi/2, 3pi/2)."""
+    """The paper's pendulum: theta0 ~ U(-3pi/2, pi/2), omega0 ~ U(-pi, pi),
+    phi ~ U(-pi/2, 3pi/2)."""
     return System(
         name="pendulum",
         state_names=("theta", "omega"),
@@ -84,6 +90,8 @@ def make_pendulum() -> System:
         param_high=np.array([1.5 * np.pi]),
         param_circular=(True,),
         rhs=_rhs,
+        rollout_jit=rollout_jit,  # noqa: F821 - defined by define_kernels
+        rollout_batch_jit=rollout_batch_jit,  # noqa: F821
         costate_from_params=costate_from_params,
         costate_from_params_jit=_costate_from_params_jit,
         optimal_control=optimal_control,

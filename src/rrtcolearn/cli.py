@@ -1,0 +1,276 @@
+"""Command-line interface: parse, validate, call the library, print."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    SpinnerColumn,
+    TextColumn,
+    TimeElapsedColumn,
+)
+from rich.table import Table
+
+from rrtcolearn import __version__, pipeline
+from rrtcolearn.config import Config, load_config, read_toml
+from rrtcolearn.errors import ConfigError, RRTCoLearnError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="RRT-CoLearn: kinodynamic planning with learned cost-to-go and learned steering.",
+)
+console = Console(stderr=True)
+out_console = Console()
+_state = {"debug": False}
+
+ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="TOML config file")]
+SeedOpt = Annotated[int | None, typer.Option("--seed", help="random seed (overrides config)")]
+OutOpt = Annotated[Path | None, typer.Option("--out", help="run directory (default runs/<name>)")]
+SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override: section.key=value")]
+
+
+def _fail(message: str, code: int) -> None:
+    console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+def _guard(fn):
+    """Run a command body; user errors become one line and a non-zero exit, never a traceback."""
+    try:
+        return fn()
+    except typer.Exit:
+        raise
+    except RRTCoLearnError as exc:
+        if _state["debug"]:
+            raise
+        _fail(str(exc), exc.exit_code)
+    except KeyboardInterrupt:
+        console.print("interrupted; finished files are complete, unfinished ones were not written")
+        raise typer.Exit(130) from None
+    except MemoryError:
+        _fail("out of memory; reduce generate.n_simulations", 3)
+    except Exception as exc:  # an internal error: still one line unless --debug
+        if _state["debug"]:
+            raise
+        _fail(f"internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)", 1)
+
+
+def _config(config: Path | None, seed: int | None, overrides: list[str] | None,
+            run_dir: Path | None = None) -> Config:
+    base = {}
+    if run_dir is not None and (run_dir / "config.toml").is_file():
+        base = read_toml(run_dir / "config.toml")
+    cfg = load_config(config, overrides, base=base)
+    if seed is not None:
+        if seed < 0:
+            raise ConfigError("--seed must be a non-negative integer")
+        cfg = cfg.model_copy(update={"seed": seed})
+    return cfg
+
+
+def _run_dir(out: Path | None, cfg: Config) -> Path:
+    return out if out is not None else Path("runs") / cfg.name
+
+
+def _progress() -> Progress:
+    return Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
+                    MofNCompleteColumn(), TimeElapsedColumn(), console=console,
+                    disable=not console.is_terminal and not _state.get("force_progress"))
+
+
+def _do_generate(cfg: Config, run_dir: Path) -> dict:
+    with _progress() as bar:
+        task = bar.add_task("generate (Alg. 2)", total=cfg.generate.n_simulations)
+        (_, stats), cpu = pipeline.timed(pipeline.generate, cfg, run_dir,
+                                            progress=lambda k: bar.advance(task, k))
+    return {"simulations": stats.simulations, "invalid_costates": stats.invalid_costates,
+            "raw_points": stats.points, "generate_cpu_s": round(cpu, 3)}
+
+
+def _do_clean(cfg: Config, run_dir: Path) -> dict:
+    with _progress() as bar:
+        task = bar.add_task("clean (Alg. 3): removed", total=None)
+        (cleaned, result), cpu = pipeline.timed(
+            pipeline.clean, cfg, run_dir,
+            progress=lambda draws, removed: bar.update(task, completed=removed))
+    return {"kept_points": len(cleaned), "removed_points": len(result.removed),
+            "clean_draws": result.draws, "clean_cpu_s": round(cpu, 3)}
+
+
+def _do_fit(cfg: Config, run_dir: Path) -> tuple[pipeline.FittedModel, dict]:
+    model, cpu = pipeline.timed(pipeline.fit, cfg, run_dir)
+    return model, {"fit_cpu_s": round(cpu, 3)}
+
+
+def _write_plan(p, path: Path) -> None:
+    from rrtcolearn.plotting import save_figure, tree_figure
+
+    pipeline.write_plan(p, path)
+    save_figure(tree_figure(p), path.with_suffix(".png"))
+
+
+def _plan_summary(p) -> dict:
+    return {"status": p.status, "solved": p.solved, "iterations": p.iterations,
+            "nodes": p.nodes, "path_cost": round(p.path_cost, 4),
+            "path_duration": round(p.path_duration, 3),
+            "planning_cpu_s": round(p.planning_cpu_s, 4)}
+
+
+def _print_summary(title: str, figures: dict) -> None:
+    table = Table(title=title, show_header=False)
+    for k, v in figures.items():
+        table.add_row(k, str(v))
+    out_console.print(table)
+
+
+@app.callback()
+def _main(
+    debug: Annotated[bool, typer.Option("--debug", help="show tracebacks on errors")] = False,
+    version: Annotated[bool, typer.Option("--version", help="print the version")] = False,
+) -> None:
+    _state["debug"] = debug
+    if version:
+        out_console.print(f"rrtcolearn {__version__}")
+        raise typer.Exit(0)
+
+
+@app.command()
+def systems() -> None:
+    """List the registered systems."""
+    from rrtcolearn.systems import list_systems, make
+
+    for name in list_systems():
+        out_console.print(f"{name}: {make(name).description}")
+
+
+@app.command()
+def generate(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
+             set_: SetOpt = None) -> None:
+    """Generate a dataset of optimal trajectory segments (Alg. 2)."""
+    def body():
+        cfg = _config(config, seed, set_)
+        run_dir = _run_dir(out, cfg)
+        _print_summary(f"generate -> {run_dir}", _do_generate(cfg, run_dir))
+    _guard(body)
+
+
+@app.command()
+def clean(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
+          set_: SetOpt = None) -> None:
+    """Remove the local-optimum bias from a run's dataset (Alg. 3)."""
+    def body():
+        cfg = _config(config, seed, set_, out)
+        run_dir = _run_dir(out, cfg)
+        _print_summary(f"clean -> {run_dir}", _do_clean(cfg, run_dir))
+    _guard(body)
+
+
+@app.command()
+def fit(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
+        set_: SetOpt = None) -> None:
+    """Fit the cost-to-go, steering and validity learners on a run's cleaned dataset."""
+    def body():
+        cfg = _config(config, seed, set_, out)
+        run_dir = _run_dir(out, cfg)
+        _, figures = _do_fit(cfg, run_dir)
+        _print_summary(f"fit -> {run_dir}", figures)
+    _guard(body)
+
+
+def _parse_state(value: str | None, what: str) -> list[float] | None:
+    if value is None:
+        return None
+    try:
+        return [float(v) for v in value.split(",")]
+    except ValueError:
+        raise ConfigError(f"{what} must be comma-separated numbers like -3.14,0, "
+                          f"got {value!r}") from None
+
+
+@app.command()
+def plan(
+    model: Annotated[Path | None, typer.Option("--model", help="fitted run directory")] = None,
+    start: Annotated[str | None, typer.Option(help="start state, e.g. -3.14159,0")] = None,
+    goal: Annotated[str | None, typer.Option(help="goal state, e.g. 0,0")] = None,
+    goal_tolerance: Annotated[float | None, typer.Option(help="goal radius")] = None,
+    seed: SeedOpt = None,
+    time_limit: Annotated[float | None, typer.Option(help="seconds")] = None,
+    max_iterations: Annotated[int | None, typer.Option(help="iteration limit")] = None,
+    out: Annotated[Path | None, typer.Option("--out", help="plan file (JSON)")] = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Plan one query with a fitted model; writes the plan JSON and a PNG of the tree."""
+    def body():
+        run_dir = model if model is not None else Path("runs") / Config().name
+        overrides = list(set_ or [])
+        for key, value in (("start", _parse_state(start, "--start")),
+                           ("goal", _parse_state(goal, "--goal")),
+                           ("goal_tolerance", goal_tolerance), ("time_limit", time_limit),
+                           ("max_iterations", max_iterations)):
+            if value is not None:
+                overrides.append(f"plan.{key}={value!r}" if not isinstance(value, list)
+                                 else f"plan.{key}=[{', '.join(map(repr, value))}]")
+        fitted = pipeline.load_model(run_dir)
+        # the model's own configuration is the base; only its plan section may change here
+        if seed is not None and seed < 0:
+            raise ConfigError("--seed must be a non-negative integer")
+        cfg = load_config(config, overrides, base={"plan": fitted.config.plan.model_dump()})
+        p_cfg = fitted.config.model_copy(update={"plan": cfg.plan})
+        plan_seed = seed if seed is not None else fitted.config.seed
+        out_path = out if out is not None else run_dir / "plan.json"
+        p = pipeline.plan(fitted, cfg.plan.start, cfg.plan.goal, cfg.plan.goal_tolerance,
+                          plan_seed, config=p_cfg, time_limit=cfg.plan.time_limit,
+                          max_iterations=cfg.plan.max_iterations)
+        _write_plan(p, out_path)
+        _print_summary(f"plan -> {out_path}", _plan_summary(p))
+    _guard(body)
+
+
+@app.command()
+def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
+        set_: SetOpt = None) -> None:
+    """The whole pipeline: generate, clean, fit, and plan the configured query."""
+    def body():
+        cfg = _config(config, seed, set_)
+        run_dir = _run_dir(out, cfg)
+        t0 = time.perf_counter()
+        figures = {"run_dir": str(run_dir)}
+        figures |= _do_generate(cfg, run_dir)
+        figures |= _do_clean(cfg, run_dir)
+        fitted, fit_fig = _do_fit(cfg, run_dir)
+        figures |= fit_fig
+        figures["offline_cpu_s"] = round(figures["generate_cpu_s"] + figures["clean_cpu_s"]
+                                         + figures["fit_cpu_s"], 3)
+        p = pipeline.plan(fitted, cfg.plan.start, cfg.plan.goal, cfg.plan.goal_tolerance,
+                          cfg.seed, time_limit=cfg.plan.time_limit,
+                          max_iterations=cfg.plan.max_iterations)
+        _write_plan(p, run_dir / "plan.json")
+        figures |= _plan_summary(p)
+        figures["wall_s"] = round(time.perf_counter() - t0, 2)
+        pipeline.write_json(run_dir / "summary.json", figures)
+        _print_summary(f"run -> {run_dir}", figures)
+    _guard(body)
+
+
+def main() -> None:
+    """Console entry point."""
+    try:
+        app()
+    except KeyboardInterrupt:
+        console.print("interrupted")
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,173 @@
+"""Versioned, pickle-free artefact files, written atomically.
+
+Array files are ``.npz`` archives read with ``allow_pickle=False``; next to the arrays they
+carry a JSON header (``__meta__``) with the format name, schema version, package version,
+the configuration that produced them and a SHA-256 digest of the arrays. Loading checks all
+of these. JSON files are written the same way (temporary file, fsync, rename), so an
+interrupted run leaves either the old file or the new one, never a torn one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import json
+import os
+import uuid
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rrtcolearn import __version__
+from rrtcolearn.data.dataset import Dataset
+from rrtcolearn.errors import ArtefactError
+
+SCHEMA_VERSION = 1
+_META = "__meta__"
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temporary file in the same directory and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.parent / f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
+    # os.open with 0o666 honours the umask, unlike mkstemp's fixed 0o600
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=1, allow_nan=False) + "\n")
+
+
+def read_json(path: str | os.PathLike, what: str = "file") -> Any:
+    path = Path(path)
+    if not path.is_file():
+        raise ArtefactError(f"{what} not found: {path}")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ArtefactError(f"{what} {path} is not valid JSON ({exc})") from None
+
+
+def digest(arrays: dict[str, np.ndarray]) -> str:
+    """SHA-256 over arrays in name order: name, dtype, shape and C-order bytes."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(name.encode())
+        h.update(a.dtype.str.encode())
+        h.update(repr(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def save_arrays(path: str | os.PathLike, fmt: str, arrays: dict[str, np.ndarray],
+                meta: dict[str, Any]) -> str:
+    """Write arrays and a checked header to ``path`` atomically; returns the arrays' digest."""
+    for name, a in arrays.items():
+        if a.dtype == object:
+            raise TypeError(f"array {name!r} has dtype object, which cannot be stored safely")
+    header = {
+        "format": fmt,
+        "schema_version": SCHEMA_VERSION,
+        "package_version": __version__,
+        "sha256": digest(arrays),
+        **meta,
+    }
+    buf = io.BytesIO()
+    np.savez(buf, **arrays, **{_META: np.array(json.dumps(header, allow_nan=False))})
+    atomic_write_bytes(path, buf.getvalue())
+    return header["sha256"]
+
+
+def load_arrays(path: str | os.PathLike, fmt: str) -> tuple[dict[str, np.ndarray], dict]:
+    """Read a file written by `save_arrays`, refusing anything that does not check out."""
+    path = Path(path)
+    if not path.is_file():
+        raise ArtefactError(f"{fmt} file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (zipfile.BadZipFile, EOFError, OSError, KeyError) as exc:
+        raise ArtefactError(f"{path} is not a readable {fmt} file (truncated or corrupt: "
+                            f"{exc})") from None
+    except ValueError as exc:  # object arrays need pickle, which is refused
+        raise ArtefactError(f"{path} holds data that would need unpickling, refused ({exc})"
+                            ) from None
+    if _META not in arrays:
+        raise ArtefactError(f"{path} has no header: not an rrtcolearn {fmt} file")
+    try:
+        meta = json.loads(str(arrays.pop(_META)))
+    except json.JSONDecodeError:
+        raise ArtefactError(f"{path} has a corrupt header") from None
+    if not isinstance(meta, dict) or meta.get("format") != fmt:
+        found = meta.get("format") if isinstance(meta, dict) else None
+        raise ArtefactError(f"{path} is a {found!r} file, expected {fmt!r}")
+    if meta.get("schema_version") != SCHEMA_VERSION:
+        raise ArtefactError(f"{path} has schema version {meta.get('schema_version')}, this "
+                            f"rrtcolearn reads version {SCHEMA_VERSION}")
+    if digest(arrays) != meta.get("sha256"):
+        raise ArtefactError(f"{path} fails its checksum: the arrays were modified or damaged")
+    return arrays, meta
+
+
+DATASET_FORMAT = "rrtcolearn.dataset"
+
+
+def save_dataset(path: str | os.PathLike, data: Dataset, meta: dict[str, Any]) -> str:
+    """Store a dataset compactly: per-simulation starts and costates, per-point ends and costs."""
+    sims, inverse = np.unique(data.simulation, return_inverse=True)
+    first = np.zeros(len(sims), dtype=np.int64)
+    first[inverse[::-1]] = np.arange(len(data))[::-1]
+    arrays = {
+        "sim_id": sims.astype(np.int64),
+        "sim_x0": data.x0[first],
+        "sim_params": data.params[first],
+        "sim_costate": data.costate[first],
+        "point_sim": inverse.astype(np.int32),
+        "point_x1": data.x1,
+        "point_cost": data.cost,
+        "point_duration": data.duration,
+    }
+    return save_arrays(path, DATASET_FORMAT, arrays, meta)
+
+
+def load_dataset(path: str | os.PathLike, system: str | None = None) -> tuple[Dataset, dict]:
+    """Read a dataset file; ``system`` (if given) must match the one it was generated for."""
+    arrays, meta = load_arrays(path, DATASET_FORMAT)
+    if system is not None and meta.get("system") != system:
+        raise ArtefactError(f"{path} holds data of system {meta.get('system')!r}, "
+                            f"not {system!r}")
+    try:
+        s = arrays["point_sim"]
+        if s.size and (s.min() < 0 or s.max() >= len(arrays["sim_id"])):
+            raise ArtefactError(f"{path} has point rows that refer to missing simulations")
+        data = Dataset.from_arrays({
+            "x0": arrays["sim_x0"][s],
+            "x1": arrays["point_x1"],
+            "cost": arrays["point_cost"],
+            "params": arrays["sim_params"][s],
+            "duration": arrays["point_duration"],
+            "costate": arrays["sim_costate"][s],
+            "simulation": arrays["sim_id"][s],
+        })
+    except (KeyError, IndexError, ValueError) as exc:
+        raise ArtefactError(f"{path} is not a consistent dataset ({exc})") from None
+    return data, meta

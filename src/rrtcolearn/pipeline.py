@@ -1,0 +1,235 @@
+"""The pipeline as library calls: generate -> clean -> fit -> plan, each reading and writing a
+run directory. The CLI is a thin layer over these functions.
+
+Run directory layout::
+
+    config.toml     resolved configuration of the last step run here
+    dataset.npz     raw data (Alg. 2)
+    cleaned.npz     cleaned data (Alg. 3)
+    model.json      learner parameters; models are rebuilt from cleaned.npz (no pickle)
+    plan.json       the plan of the swing-up query, plan.png its tree (paper Fig. 2)
+    summary.json    figures of the last `run`
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rrtcolearn import __version__
+from rrtcolearn.config import Config, to_toml
+from rrtcolearn.data.clean import CleaningResult, clean_data
+from rrtcolearn.data.dataset import Dataset
+from rrtcolearn.data.generate import GenerationStats, generate_data
+from rrtcolearn.data.store import (
+    atomic_write_text,
+    load_dataset,
+    read_json,
+    save_dataset,
+    write_json,
+)
+from rrtcolearn.errors import ArtefactError, ConfigError
+from rrtcolearn.learn.models import LearnedFunctions
+from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
+from rrtcolearn.planning.termination import TerminationCondition
+from rrtcolearn.planning.tree import Plan
+from rrtcolearn.systems import make
+from rrtcolearn.systems.base import System
+
+DATASET_FILE = "dataset.npz"
+CLEANED_FILE = "cleaned.npz"
+MODEL_FILE = "model.json"
+MODEL_FORMAT = "rrtcolearn.model"
+MODEL_SCHEMA = 1
+
+_STREAMS = {"generate": 0, "clean": 1, "plan": 2}
+
+
+def seed_stream(seed: int, step: str) -> np.random.SeedSequence:
+    """Independent random stream of one pipeline step, derived from the run's seed."""
+    return np.random.SeedSequence(seed, spawn_key=(_STREAMS[step],))
+
+
+def build_system(config: Config) -> System:
+    """The configured system, with any sampling-box overrides applied and checked."""
+    try:
+        system = make(config.system.name)
+    except ValueError as exc:
+        raise ConfigError(f"config: system.name: {exc}") from None
+    g = config.generate
+    changes = {}
+    for key, n in (("state_low", system.n_states), ("state_high", system.n_states),
+                   ("param_low", system.n_params), ("param_high", system.n_params)):
+        value = getattr(g, key)
+        if value is not None:
+            if len(value) != n:
+                raise ConfigError(f"config: generate.{key} needs {n} values, got {len(value)}")
+            changes[key] = np.asarray(value, dtype=np.float64)
+    system = dataclasses.replace(system, **changes)
+    if np.any(system.state_low >= system.state_high):
+        raise ConfigError("config: generate.state_low must be below state_high")
+    if np.any(system.param_low >= system.param_high):
+        raise ConfigError("config: generate.param_low must be below param_high")
+    return system
+
+
+def _meta(config: Config, system: System, **extra) -> dict:
+    return {"system": system.name, "config": config.model_dump(mode="json"), **extra}
+
+
+def save_config(config: Config, run_dir: Path) -> None:
+    atomic_write_text(Path(run_dir) / "config.toml", to_toml(config))
+
+
+def generate(config: Config, run_dir: str | Path,
+             progress: Callable[[int], None] | None = None) -> tuple[Dataset, GenerationStats]:
+    """Alg. 2 with the configured parameters; writes ``dataset.npz``."""
+    run_dir = Path(run_dir)
+    system = build_system(config)
+    g = config.generate
+    data, stats = generate_data(
+        system, seed_stream(config.seed, "generate"), g.n_simulations,
+        time_weight=config.system.time_weight, dt=g.dt, max_cost=g.max_cost,
+        max_state_distance=g.max_state_distance, chunk_size=g.chunk_size, progress=progress)
+    save_config(config, run_dir)
+    save_dataset(run_dir / DATASET_FILE, data,
+                 _meta(config, system, stats=dataclasses.asdict(stats)))
+    return data, stats
+
+
+def clean(config: Config, run_dir: str | Path,
+          progress: Callable[[int, int], None] | None = None
+          ) -> tuple[Dataset, CleaningResult]:
+    """Alg. 3 on the run's ``dataset.npz``; writes ``cleaned.npz``."""
+    run_dir = Path(run_dir)
+    system = build_system(config)
+    raw, raw_meta = load_dataset(run_dir / DATASET_FILE, system.name)
+    c = config.clean
+    cleaned, result = clean_data(raw, d=c.d, k_max=c.k_max, method=c.method,
+                                 seed=seed_stream(config.seed, "clean"), progress=progress)
+    stats = {"raw_points": len(raw), "kept_points": len(cleaned), "draws": result.draws,
+             "dataset_sha256": raw_meta["sha256"]}
+    config = _with_sections(config, raw_meta, ("system", "generate"))
+    save_config(config, run_dir)
+    save_dataset(run_dir / CLEANED_FILE, cleaned, _meta(config, system, stats=stats))
+    return cleaned, result
+
+
+def _with_sections(config: Config, meta: dict, sections: tuple[str, ...]) -> Config:
+    """``config`` with ``sections`` taken from the artefact it consumes (the truth about it)."""
+    stored = meta.get("config", {})
+    update = {s: getattr(Config.model_validate(stored), s) for s in sections if s in stored}
+    return config.model_copy(update=update)
+
+
+@dataclass
+class FittedModel:
+    """Learned J, U, V with what the planner needs to use them."""
+
+    system: System
+    config: Config
+    functions: LearnedFunctions
+    max_duration: float
+    max_state_distance: float
+
+    def planner_settings(self, config: Config | None = None) -> PlannerSettings:
+        p = (config or self.config).plan
+        learn = self.config.learn
+        # a query (x0, x1) farther apart than this cannot have m neighbours within the
+        # validity threshold, since every data pair is at most max_state_distance apart
+        reach = self.max_state_distance + np.sqrt(2.0) * learn.validity_threshold / \
+            learn.n_neighbors
+        return PlannerSettings(
+            time_weight=self.config.system.time_weight, dt=self.config.generate.dt,
+            goal_bias=p.goal_bias, sigma=p.sigma, sigma_goal=p.sigma_goal,
+            decimals=p.decimals, max_duration=self.max_duration, reach=float(reach))
+
+
+def fit_functions(system: System, data: Dataset, config: Config) -> LearnedFunctions:
+    """Fit J, U and V on a (cleaned) dataset with the configured learner parameters."""
+    learn = config.learn
+    if learn.cost_lower >= learn.cost_upper:
+        raise ConfigError("config: learn.cost_lower must be below learn.cost_upper")
+    if len(data) < learn.n_neighbors:
+        raise ArtefactError(f"the cleaned dataset has {len(data)} points, fewer than "
+                            f"learn.n_neighbors = {learn.n_neighbors}")
+    return LearnedFunctions.fit(
+        data.inputs, data.cost, np.hstack([data.params, data.duration[:, None]]),
+        n_neighbors=learn.n_neighbors, cost_bounds=(learn.cost_lower, learn.cost_upper),
+        validity_threshold=learn.validity_threshold, circular=system.param_circular,
+        low=tuple(system.param_low), high=tuple(system.param_high))
+
+
+def fit(config: Config, run_dir: str | Path) -> FittedModel:
+    """Fit the learners on ``cleaned.npz``; writes ``model.json`` (parameters, no pickle)."""
+    run_dir = Path(run_dir)
+    system = build_system(config)
+    data, meta = load_dataset(run_dir / CLEANED_FILE, system.name)
+    config = _with_sections(config, meta, ("system", "generate", "clean"))
+    functions = fit_functions(system, data, config)
+    save_config(config, run_dir)
+    write_json(run_dir / MODEL_FILE, {
+        "format": MODEL_FORMAT,
+        "schema_version": MODEL_SCHEMA,
+        "package_version": __version__,
+        "system": system.name,
+        "cleaned_file": CLEANED_FILE,
+        "cleaned_sha256": meta["sha256"],
+        "points": len(data),
+        "max_duration": float(data.duration.max()),
+        "config": config.model_dump(mode="json"),
+    })
+    return FittedModel(system, config, functions, float(data.duration.max()),
+                       config.generate.max_state_distance)
+
+
+def load_model(run_dir: str | Path) -> FittedModel:
+    """Rebuild a fitted model from a run directory, checking that its files belong together."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise ArtefactError(f"run directory not found: {run_dir}")
+    info = read_json(run_dir / MODEL_FILE, "model file")
+    if not isinstance(info, dict) or info.get("format") != MODEL_FORMAT:
+        raise ArtefactError(f"{run_dir / MODEL_FILE} is not an rrtcolearn model file")
+    if info.get("schema_version") != MODEL_SCHEMA:
+        raise ArtefactError(f"{run_dir / MODEL_FILE} has schema version "
+                            f"{info.get('schema_version')}, expected {MODEL_SCHEMA}")
+    try:
+        config = Config.model_validate(info["config"])
+    except Exception:
+        raise ArtefactError(f"{run_dir / MODEL_FILE} holds an invalid configuration") from None
+    system = build_system(config)
+    data, meta = load_dataset(run_dir / CLEANED_FILE, system.name)
+    if meta["sha256"] != info.get("cleaned_sha256"):
+        raise ArtefactError(f"{run_dir / CLEANED_FILE} is not the dataset the model was "
+                            f"fitted on (checksum differs); rerun `rrtcolearn fit`")
+    functions = fit_functions(system, data, config)
+    return FittedModel(system, config, functions, float(data.duration.max()),
+                       config.generate.max_state_distance)
+
+
+def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, *,
+         config: Config | None = None, time_limit: float | None = 10.0,
+         max_iterations: int | None = None) -> Plan:
+    """Plan one query with a fitted model (Alg. 1)."""
+    problem = PlanningProblem.create(model.system, start, goal, goal_tolerance)
+    planner = RRTCoLearn(problem, model.functions, model.planner_settings(config))
+    return planner.solve(TerminationCondition(time_limit, max_iterations), seed)
+
+
+def write_plan(p: Plan, path: str | Path) -> None:
+    """Write the plan file (JSON, see README "The plan file")."""
+    write_json(path, p.to_dict())
+
+
+def timed(fn, *args, **kwargs):
+    """(result, process CPU seconds) of a call."""
+    t0 = time.process_time()
+    out = fn(*args, **kwargs)
+    return out, time.process_time() - t0

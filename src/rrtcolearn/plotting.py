@@ -1,0 +1,63 @@
+"""Figures. Functions take an ``ax`` and return artists; they never call ``show()``."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.collections import LineCollection
+from matplotlib.patches import Circle
+
+from rrtcolearn.data.store import atomic_write_bytes
+from rrtcolearn.planning.tree import Plan
+
+
+def plot_tree(ax, plan: Plan, *, max_edges: int | None = None) -> list:
+    """The tree in the state plane with the solution path highlighted (paper Fig. 2)."""
+    tree = plan.tree
+    trajs = tree.trajectories[1 : tree.n_nodes]
+    if max_edges is not None:
+        trajs = trajs[:max_edges]
+    artists = []
+    if trajs:
+        lc = LineCollection([t[:, :2] for t in trajs], colors="0.6", linewidths=0.6)
+        artists.append(ax.add_collection(lc))
+    states = tree.states[: tree.n_nodes]
+    artists.append(ax.plot(states[:, 0], states[:, 1], ".", color="0.35", ms=2.5)[0])
+    path = plan.path_nodes
+    if len(path) > 1:
+        pts = np.vstack([tree.trajectories[i][:, :2] for i in path[1:]])
+        artists.append(ax.plot(pts[:, 0], pts[:, 1], "-", color="tab:red", lw=1.8,
+                               label=f"path (cost {plan.path_cost:.2f})")[0])
+    artists.append(ax.plot(*plan.start[:2], "o", color="tab:blue", label="start")[0])
+    artists.append(ax.add_patch(Circle(tuple(plan.goal[:2]), plan.goal_tolerance, fill=False,
+                                       color="tab:green", lw=1.5)))
+    artists.append(ax.plot(*plan.goal[:2], "*", color="tab:green", ms=10, label="goal")[0])
+    ax.set_xlabel(r"$\theta$ [rad]")
+    ax.set_ylabel(r"$\omega$ [rad/s]")
+    ax.set_title(f"{plan.system}: {plan.status}, {plan.nodes} nodes, "
+                 f"{plan.iterations} iterations")
+    ax.legend(loc="best", fontsize=8)
+    ax.autoscale_view()
+    return artists
+
+
+def save_figure(fig, path: str | Path, dpi: int = 120) -> None:
+    """Save a figure atomically and close it."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format=Path(path).suffix.lstrip(".") or "png", dpi=dpi,
+                bbox_inches="tight")
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def tree_figure(plan: Plan):
+    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+    plot_tree(ax, plan)
+    return fig
