@@ -85,11 +85,11 @@ def save_arrays(path: str | os.PathLike, fmt: str, arrays: dict[str, np.ndarray]
         if a.dtype == object:
             raise TypeError(f"array {name!r} has dtype object, which cannot be stored safely")
     header = {
+        **meta,
         "format": fmt,
         "schema_version": SCHEMA_VERSION,
         "package_version": __version__,
         "sha256": digest(arrays),
-        **meta,
     }
     buf = io.BytesIO()
     np.savez(buf, **arrays, **{_META: np.array(json.dumps(header, allow_nan=False))})

@@ -6,10 +6,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rrtcolearn.errors import RRTCoLearnError
 from rrtcolearn.systems.base import System
 
 
-class ProblemError(ValueError):
+class ProblemError(RRTCoLearnError, ValueError):
     """A planning query that cannot be planned (bad start, goal or tolerance)."""
 
 

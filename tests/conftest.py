@@ -1,0 +1,51 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rrtcolearn.config import Config
+from rrtcolearn.data.clean import clean_data
+from rrtcolearn.data.generate import generate_data
+from rrtcolearn.pipeline import FittedModel, fit_functions
+from rrtcolearn.systems import make
+
+
+@pytest.fixture(scope="session")
+def pendulum():
+    return make("pendulum")
+
+
+@pytest.fixture(scope="session")
+def small_dataset(pendulum):
+    data, _ = generate_data(pendulum, 7, 400, chunk_size=100)
+    return data
+
+
+@pytest.fixture(scope="session")
+def paper_model(pendulum) -> FittedModel:
+    """The paper's defaults: 40000 simulations, cleaned with d = 0.05, k-NN m = 3."""
+    cfg = Config()
+    data, _ = generate_data(pendulum, 1, cfg.generate.n_simulations)
+    cleaned, _ = clean_data(data, seed=1)
+    return FittedModel(pendulum, cfg, fit_functions(pendulum, cleaned, cfg),
+                       float(cleaned.duration.max()), cfg.generate.max_state_distance)
+
+
+def pendulum_rhs_numpy(z: np.ndarray, w: float) -> np.ndarray:
+    """The paper's state+costate ODEs (Eqs. 6-7) plus running cost, written independently."""
+    th, om, lth, lom = z[0], z[1], z[2], z[3]
+    return np.array([om, np.sin(th) - lom, -lom * np.cos(th), -lth, w + 0.5 * lom**2])
+
+
+def rk4_numpy(z0: np.ndarray, w: float, dt: float, steps: int) -> np.ndarray:
+    """A plain RK4 integrator, independent of the package's compiled one."""
+    z = np.array(z0, dtype=float)
+    out = [z.copy()]
+    for _ in range(steps):
+        k1 = pendulum_rhs_numpy(z, w)
+        k2 = pendulum_rhs_numpy(z + 0.5 * dt * k1, w)
+        k3 = pendulum_rhs_numpy(z + 0.5 * dt * k2, w)
+        k4 = pendulum_rhs_numpy(z + dt * k3, w)
+        z = z + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        out.append(z.copy())
+    return np.array(out)

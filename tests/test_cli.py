@@ -1,0 +1,141 @@
+"""The command line on a tiny configuration, and every bad input of the pipeline issue."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from rrtcolearn.cli import app
+from rrtcolearn.data.store import load_dataset
+
+TINY = ["--set", "generate.n_simulations=3000", "--set", "clean.k_max=500",
+        "--set", "plan.max_iterations=400", "--set", "plan.time_limit=20"]
+
+
+def invoke(*args: str):
+    return CliRunner().invoke(app, list(args))
+
+
+def assert_one_line_error(result, code: int = 2, contains: str = "") -> None:
+    assert result.exit_code == code, result.output
+    text = result.output.strip()
+    assert "Traceback" not in text
+    assert len(text.splitlines()) == 1, text
+    assert text.startswith("error:")
+    assert contains in text
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("run") / "tiny"
+    result = invoke("run", "--seed", "3", "--out", str(out), *TINY)
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_run_writes_every_artefact(tiny_run):
+    for name in ("config.toml", "dataset.npz", "cleaned.npz", "model.json", "plan.json",
+                 "plan.png", "summary.json"):
+        assert (tiny_run / name).is_file(), name
+    cfg = (tiny_run / "config.toml").read_text()
+    assert "n_simulations = 3000" in cfg and "seed = 3" in cfg
+    summary = json.loads((tiny_run / "summary.json").read_text())
+    assert summary["raw_points"] > summary["kept_points"] > 0
+    assert not list(tiny_run.glob(".*.tmp"))
+
+
+def test_steps_one_by_one_equal_the_run(tiny_run, tmp_path):
+    out = tmp_path / "steps"
+    for step in ("generate", "clean", "fit"):
+        result = invoke(step, "--seed", "3", "--out", str(out), *TINY)
+        assert result.exit_code == 0, result.output
+    a, ma = load_dataset(out / "cleaned.npz")
+    b, mb = load_dataset(tiny_run / "cleaned.npz")
+    assert ma["sha256"] == mb["sha256"]
+    result = invoke("plan", "--model", str(out), "--start=-3.14159,0", "--goal", "0,0",
+                    "--goal-tolerance", "0.3", "--seed", "2", "--max-iterations", "300",
+                    "--out", str(tmp_path / "p.json"))
+    assert result.exit_code == 0, result.output
+    plan = json.loads((tmp_path / "p.json").read_text())
+    assert plan["goal_tolerance"] == 0.3 and plan["iterations"] <= 300
+    assert (tmp_path / "p.png").is_file()
+
+
+@pytest.mark.parametrize("start, goal, tol, contains", [
+    ("nan,0", "0,0", "0.1", "finite"),
+    ("-3.14,0", "0,9", "0.1", "outside the state box"),
+    ("1,a", "0,0", "0.1", "comma-separated"),
+    ("1", "0,0", "0.1", "2 coordinates"),
+    ("-3.14,0", "0,0", "0", "greater than 0"),
+    ("-3.14,0", "0,0", "-1", "greater than 0"),
+])
+def test_bad_plan_queries(tiny_run, tmp_path, start, goal, tol, contains):
+    out = tmp_path / "p.json"
+    result = invoke("plan", "--model", str(tiny_run), f"--start={start}", f"--goal={goal}",
+                    f"--goal-tolerance={tol}", "--out", str(out))
+    assert_one_line_error(result, contains=contains)
+    assert not out.exists() and not out.with_suffix(".png").exists()
+
+
+def test_missing_and_corrupted_run_directories(tiny_run, tmp_path):
+    result = invoke("plan", "--model", str(tmp_path / "nowhere"), "--out", str(tmp_path / "p"))
+    assert_one_line_error(result, contains="not found")
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    for name in ("model.json", "cleaned.npz", "config.toml"):
+        (broken / name).write_bytes((tiny_run / name).read_bytes())
+    raw = (broken / "cleaned.npz").read_bytes()
+    (broken / "cleaned.npz").write_bytes(raw[: len(raw) // 3])
+    result = invoke("plan", "--model", str(broken), "--out", str(tmp_path / "p.json"))
+    assert_one_line_error(result, contains="cleaned.npz")
+    (broken / "model.json").write_text("{not json")
+    result = invoke("plan", "--model", str(broken), "--out", str(tmp_path / "p.json"))
+    assert_one_line_error(result, contains="JSON")
+    result = invoke("clean", "--out", str(tmp_path / "empty"))
+    assert_one_line_error(result, contains="not found")
+
+
+def test_unknown_and_mistyped_config_keys(tmp_path):
+    out = tmp_path / "r"
+    result = invoke("generate", "--out", str(out), "--set", "generate.n_simulation=10")
+    assert_one_line_error(result, contains="did you mean 'n_simulations'")
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[clean]\nradius = 0.1\n")
+    result = invoke("generate", "--out", str(out), "--config", str(cfg))
+    assert_one_line_error(result, contains="unknown key 'clean.radius'")
+    cfg.write_text("[generate]\nn_simulations = 'many'\n")
+    result = invoke("generate", "--out", str(out), "--config", str(cfg))
+    assert_one_line_error(result, contains="generate.n_simulations")
+    cfg.write_text("[generate\n")
+    result = invoke("generate", "--out", str(out), "--config", str(cfg))
+    assert_one_line_error(result, contains="not valid TOML")
+    result = invoke("generate", "--out", str(out), "--set", "system.name=rocket")
+    assert_one_line_error(result, contains="unknown system")
+    assert not out.exists()
+
+
+def test_console_script_end_to_end(tmp_path):
+    """The installed command itself, as a user runs it: a bad input is one line, exit 2."""
+    exe = Path(sys.executable).with_name("rrtcolearn")
+    proc = subprocess.run([str(exe), "plan", "--model", str(tmp_path), "--start=nan,0"],
+                          capture_output=True, text=True, check=False)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr and proc.stderr.startswith("error:")
+
+
+def test_same_seed_same_dataset(tmp_path):
+    digests = []
+    for name in ("a", "b"):
+        result = invoke("generate", "--seed", "9", "--out", str(tmp_path / name),
+                        "--set", "generate.n_simulations=500")
+        assert result.exit_code == 0, result.output
+        digests.append(load_dataset(tmp_path / name / "dataset.npz")[1]["sha256"])
+    assert digests[0] == digests[1]
+    assert np.array_equal(load_dataset(tmp_path / "a" / "dataset.npz")[0].x1,
+                          load_dataset(tmp_path / "b" / "dataset.npz")[0].x1)

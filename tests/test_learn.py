@@ -1,0 +1,65 @@
+"""k-NN learners: predictions on small synthetic sets, circular averaging, validity."""
+
+import numpy as np
+import pytest
+
+from rrtcolearn.learn import (
+    CostToGoRegressor,
+    LearnedFunctions,
+    SteeringRegressor,
+    ValidityClassifier,
+)
+
+X = np.array([[0.0, 0, 0, 0], [1, 0, 0, 0], [0, 1, 0, 0], [5, 5, 5, 5], [5, 5, 5, 6]])
+
+
+def test_cost_to_go_is_the_saturated_mean_of_the_nearest():
+    y = np.array([1.0, 2.0, 3.0, 10.0, 1e7])
+    model = CostToGoRegressor(n_neighbors=3).fit(X, y)
+    assert model.predict(np.array([[0.1, 0.1, 0, 0]]))[0] == pytest.approx(2.0)
+    # neighbours 3, 4 and one of the near-origin points -> mean above 1e5 saturates
+    assert model.predict(np.array([[5, 5, 5, 5.5]]))[0] == pytest.approx(1e5)
+    low = CostToGoRegressor(n_neighbors=1).fit(X, np.array([0.0, 1, 1, 1, 1]))
+    assert low.predict(X[:1])[0] == pytest.approx(1e-5)
+
+
+def test_circular_parameter_averages_across_the_branch_cut():
+    lo, hi = -np.pi / 2, 3 * np.pi / 2
+    phi = np.array([hi - 0.01, lo + 0.01, lo + 0.03, 0.0, 0.0])
+    y = np.stack([phi, np.array([0.1, 0.2, 0.3, 0.4, 0.5])], axis=1)
+    model = SteeringRegressor(3, circular=(True,), low=(lo,), high=(hi,)).fit(X, y)
+    pred = model.predict(np.array([[0.1, 0.1, 0, 0]]))[0]
+    # the arithmetic mean would be about pi/2, the opposite side of the circle
+    wrapped_gap = np.angle(np.exp(1j * (pred[0] - lo)))
+    assert abs(wrapped_gap - 0.01) < 1e-9
+    assert lo <= pred[0] < hi
+    assert pred[1] == pytest.approx(0.2)
+
+
+def test_validity_rejects_queries_far_from_the_data():
+    model = ValidityClassifier(n_neighbors=2, threshold=1.5).fit(X)
+    q = np.array([[0.2, 0.2, 0, 0], [5, 5, 5, 5.5], [20, 0, 0, 0]])
+    np.testing.assert_array_equal(model.predict(q), [True, True, False])
+
+
+def test_query_valid_prefilter_changes_nothing(paper_model):
+    """The coverage grid only skips queries the exact summed-distance test would reject."""
+    f = paper_model.functions
+    rng = np.random.default_rng(0)
+    x0 = rng.uniform([-4.7, -3.1], [1.5, 3.1], (3000, 2))
+    q = np.hstack([x0, x0 + rng.normal(0, 0.7, (3000, 2))])
+    cost, _, valid = f.query(q)
+    rows, cost_v, _ = f.query_valid(q)
+    np.testing.assert_array_equal(rows, np.flatnonzero(valid))
+    np.testing.assert_allclose(cost_v, cost[valid])
+    assert 0 < len(rows) < len(q)
+
+
+def test_fit_contract_returns_self_and_refuses_too_few_samples():
+    m = CostToGoRegressor(n_neighbors=3)
+    assert m.fit(X, np.ones(5)) is m
+    with pytest.raises(ValueError, match="at least 3"):
+        CostToGoRegressor(n_neighbors=3).fit(X[:2], np.ones(2))
+    f = LearnedFunctions.fit(X, np.ones(5), np.ones((5, 2)), validity_threshold=100.0)
+    j, u, v = f.query(X[:2])
+    assert j.shape == (2,) and u.shape == (2, 2) and v.all()

@@ -1,0 +1,82 @@
+"""RRT-CoLearn on the swing-up; plans are checked by re-simulating them independently."""
+
+import json
+
+import numpy as np
+import pytest
+from tests.conftest import rk4_numpy
+
+from rrtcolearn.pipeline import plan, write_plan
+from rrtcolearn.planning.problem import ProblemError
+
+
+def check_plan_file(d: dict) -> None:
+    """Re-simulate every edge with an independent RK4 and check what the plan claims."""
+    w, dt = d["time_weight"], d["dt"]
+    edges = d["path"]
+    assert edges, "a solved plan has edges"
+    np.testing.assert_allclose(edges[0]["from"], d["start"])
+    total = 0.0
+    for a, b in zip(edges, edges[1:], strict=False):
+        assert a["to"] == b["from"]
+    for e in edges:
+        steps = round(e["duration"] / dt)
+        assert steps * dt == pytest.approx(e["duration"])
+        traj = rk4_numpy(np.r_[e["from"], e["costate"], 0.0], w, dt, steps)
+        np.testing.assert_allclose(traj[-1, :2], e["to"], atol=1e-6)
+        assert traj[-1, 4] == pytest.approx(e["cost"], abs=1e-6)
+        # the costate satisfies H* = 0 at the edge start
+        x, lam = np.array(e["from"]), np.array(e["costate"])
+        h = w + lam[0] * x[1] + lam[1] * np.sin(x[0]) - 0.5 * lam[1] ** 2
+        assert abs(h) < 1e-9
+        total += e["cost"]
+    assert d["path_cost"] == pytest.approx(total)
+    if d["solved"]:
+        gap = np.linalg.norm(np.array(edges[-1]["to"]) - d["goal"])
+        assert gap <= d["goal_tolerance"]
+    tree = d["tree"]
+    assert len(tree["states"]) == d["nodes"] == len(tree["parents"])
+    assert tree["parents"][0] == -1
+
+
+def test_seeded_swing_up_solves_and_resimulates(paper_model, tmp_path):
+    p = plan(paper_model, [-np.pi, 0], [0, 0], 0.1, seed=0, time_limit=30)
+    assert p.solved and p.status == "exact"
+    write_plan(p, tmp_path / "plan.json")
+    d = json.loads((tmp_path / "plan.json").read_text())
+    for key in ("system", "start", "goal", "goal_tolerance", "time_weight", "solved", "status",
+                "planning_time_s", "iterations", "nodes", "path_cost", "path", "tree"):
+        assert key in d
+    check_plan_file(d)
+
+
+def test_same_seed_same_plan(paper_model):
+    a = plan(paper_model, [-np.pi, 0], [0, 0], 0.1, seed=5, time_limit=None,
+             max_iterations=3000)
+    b = plan(paper_model, [-np.pi, 0], [0, 0], 0.1, seed=5, time_limit=None,
+             max_iterations=3000)
+    assert a.to_dict()["path"] == b.to_dict()["path"]
+    assert a.nodes == b.nodes
+
+
+def test_iteration_limit_gives_a_valid_unsolved_plan(paper_model):
+    p = plan(paper_model, [-np.pi, 0], [0, 0], 0.01, seed=1, time_limit=None,
+             max_iterations=5)
+    assert not p.solved and p.status in ("approximate", "timeout")
+    assert p.iterations == 5
+    d = p.to_dict()
+    if d["path"]:
+        check_plan_file(d)
+
+
+@pytest.mark.parametrize("start, goal, tol, message", [
+    ([np.nan, 0], [0, 0], 0.1, "finite"),
+    ([-np.pi, 0], [0, 10.0], 0.1, "outside the state box"),
+    ([-np.pi], [0, 0], 0.1, "2 coordinates"),
+    ([-np.pi, 0], [0, 0], 0.0, "positive"),
+    ([-np.pi, 0], [0, 0], -1.0, "positive"),
+    (["a", 0], [0, 0], 0.1, "numbers"),
+])
+def test_bad_queries_are_refused(paper_model, start, goal, tol, message):
+    with pytest.raises(ProblemError, match=message):
+        plan(paper_model, start, goal, tol)

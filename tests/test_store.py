@@ -1,0 +1,80 @@
+"""Artefact files: round trip, and refusal of anything truncated, tampered or pickled."""
+
+import io
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+from rrtcolearn.data.store import digest, load_arrays, load_dataset, save_arrays, save_dataset
+from rrtcolearn.errors import ArtefactError
+
+
+def test_dataset_round_trip(small_dataset, tmp_path):
+    path = tmp_path / "d.npz"
+    save_dataset(path, small_dataset, {"system": "pendulum"})
+    back, meta = load_dataset(path, "pendulum")
+    for k, v in small_dataset.arrays().items():
+        assert np.array_equal(v, back.arrays()[k]), k
+    assert meta["format"] == "rrtcolearn.dataset" and meta["schema_version"] == 1
+    with pytest.raises(ArtefactError, match="system"):
+        load_dataset(path, "cartpole")
+
+
+def test_truncated_file_is_refused(small_dataset, tmp_path):
+    path = tmp_path / "d.npz"
+    save_dataset(path, small_dataset, {"system": "pendulum"})
+    raw = path.read_bytes()
+    path.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(ArtefactError):
+        load_dataset(path)
+
+
+def test_tampered_array_fails_the_checksum(tmp_path):
+    path = tmp_path / "a.npz"
+    save_arrays(path, "rrtcolearn.test", {"a": np.arange(5.0)}, {})
+    with zipfile.ZipFile(path) as z:
+        meta = z.read("__meta__.npy")
+    buf = io.BytesIO()
+    np.savez(buf, a=np.arange(5.0) + 1)
+    with zipfile.ZipFile(buf) as z:
+        a = z.read("a.npy")
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("a.npy", a)
+        z.writestr("__meta__.npy", meta)
+    with pytest.raises(ArtefactError, match="checksum"):
+        load_arrays(path, "rrtcolearn.test")
+
+
+def test_pickle_bearing_file_is_refused(tmp_path):
+    path = tmp_path / "evil.npz"
+    marker = tmp_path / "executed"
+
+    class Evil:
+        def __reduce__(self):
+            return (open, (str(marker), "w"))
+
+    arr = np.empty(1, dtype=object)
+    arr[0] = Evil()
+    np.savez(path, a=arr, __meta__=np.array("{}"))
+    assert b"executed" in path.read_bytes()  # the payload is in the file
+    with pytest.raises(ArtefactError, match="unpickling"):
+        load_arrays(path, "rrtcolearn.test")
+    assert not marker.exists()
+
+
+def test_object_arrays_are_never_written(tmp_path):
+    with pytest.raises(TypeError):
+        save_arrays(tmp_path / "x.npz", "f", {"a": np.array([None], dtype=object)}, {})
+
+
+def test_wrong_format_and_version_are_refused(tmp_path):
+    path = tmp_path / "a.npz"
+    save_arrays(path, "rrtcolearn.other", {"a": np.zeros(2)}, {})
+    with pytest.raises(ArtefactError, match="expected"):
+        load_arrays(path, "rrtcolearn.test")
+    meta = {"format": "rrtcolearn.test", "schema_version": 99, "sha256": digest({"a": np.zeros(2)})}
+    np.savez(path, a=np.zeros(2), __meta__=np.array(json.dumps(meta)))
+    with pytest.raises(ArtefactError, match="schema version"):
+        load_arrays(path, "rrtcolearn.test")
