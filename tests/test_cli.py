@@ -55,8 +55,8 @@ def test_steps_one_by_one_equal_the_run(tiny_run, tmp_path):
     for step in ("generate", "clean", "fit"):
         result = invoke(step, "--seed", "3", "--out", str(out), *TINY)
         assert result.exit_code == 0, result.output
-    a, ma = load_dataset(out / "cleaned.npz")
-    b, mb = load_dataset(tiny_run / "cleaned.npz")
+    _a, ma = load_dataset(out / "cleaned.npz")
+    _b, mb = load_dataset(tiny_run / "cleaned.npz")
     assert ma["sha256"] == mb["sha256"]
     result = invoke("plan", "--model", str(out), "--start=-3.14159,0", "--goal", "0,0",
                     "--goal-tolerance", "0.3", "--seed", "2", "--max-iterations", "300",

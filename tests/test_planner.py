@@ -1,5 +1,6 @@
 """RRT-CoLearn on the swing-up; plans are checked by re-simulating them independently."""
 
+import itertools
 import json
 
 import numpy as np
@@ -17,7 +18,7 @@ def check_plan_file(d: dict) -> None:
     assert edges, "a solved plan has edges"
     np.testing.assert_allclose(edges[0]["from"], d["start"])
     total = 0.0
-    for a, b in zip(edges, edges[1:], strict=False):
+    for a, b in itertools.pairwise(edges):
         assert a["to"] == b["from"]
     for e in edges:
         steps = round(e["duration"] / dt)
