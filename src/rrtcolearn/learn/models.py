@@ -124,17 +124,18 @@ class ValidityClassifier(_KNNBase):
         self.coverage_ = maximum_filter(occupied, size=3, mode="constant", cval=False)
         self.coverage_lo_ = lo
         self.coverage_cell_ = cell
+        self._coverage_flat = self.coverage_.ravel()
+        self._coverage_strides = np.array(self.coverage_.strides, dtype=np.int64)
+        self._coverage_dims = np.array(self.coverage_.shape, dtype=np.int64)
 
     def may_be_valid(self, X: np.ndarray) -> np.ndarray:
         """(Q,) False only where the query is certainly invalid; cheap, used to prune."""
         if self.coverage_ is None:
             return np.ones(len(X), dtype=bool)
         c = np.floor((X - self.coverage_lo_) / self.coverage_cell_).astype(np.int64)
-        dims = np.asarray(self.coverage_.shape)
-        inside = np.all((c >= 0) & (c < dims), axis=1)
-        out = np.zeros(len(X), dtype=bool)
-        out[inside] = self.coverage_[tuple(c[inside].T)]
-        return out
+        inside = ((c >= 0) & (c < self._coverage_dims)).all(axis=1)
+        flat = np.where(inside, c @ self._coverage_strides, 0)
+        return inside & self._coverage_flat[flat]
 
     def predict_from_neighbours(self, dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
         return dist.sum(axis=1) <= self.threshold

@@ -90,8 +90,13 @@ class RRTCoLearn:
         rng = np.random.default_rng(seed)
         n = sys.n_states
         tree = PlannerData(prob.start, sys.n_params)
+        # learning-query start of every node: its state shifted by whole turns into the box
         shifts = np.empty((256, n))
         shifts[0] = sys.wrap_shift(prob.start[None])[0]
+        reach2 = s.reach * s.reach
+        tol2 = prob.goal_tolerance**2
+        bounded = sys.bounded_dims
+        low_b, high_b = sys.state_low[bounded], sys.state_high[bounded]
         lam = np.empty(n)
         z0 = np.empty(2 * n + 1)
         goal_node = -1
@@ -106,11 +111,12 @@ class RRTCoLearn:
             target = prob.goal if to_goal else rng.uniform(sys.state_low, sys.state_high)
             m = tree.n_nodes
             states = tree.states[:m]
-            near = np.flatnonzero(np.linalg.norm(states - target, axis=1) <= s.reach)
+            diff = states - target
+            near = np.flatnonzero(np.einsum("ij,ij->i", diff, diff) <= reach2)
             if near.size == 0:
                 continue
             sh = shifts[near]
-            query = np.hstack([states[near] + sh, target + sh])
+            query = np.concatenate([states[near] + sh, target + sh], axis=1)
             rows, cost, neighbours = self.model.query_valid(query)
             if rows.size == 0:
                 continue
@@ -129,11 +135,16 @@ class RRTCoLearn:
             steps = max(1, round(params[-1] / s.dt))
             z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
             traj = rollout(sys, z0, s.time_weight, s.dt, steps)
-            if not np.isfinite(traj).all():
+            # non-finite values propagate to the last RK4 step, so checking it suffices
+            if not np.isfinite(traj[-1]).all():
                 continue
-            if self.settings.enforce_bounds and not prob.within_bounds(traj[1:, :n]).all():
-                continue
-            hit = np.flatnonzero(prob.goal_distance(traj[1:, :n]) <= prob.goal_tolerance)
+            path = traj[1:, :n]
+            if s.enforce_bounds and bounded.size:
+                pb = path[:, bounded]
+                if (pb.min(axis=0) < low_b).any() or (pb.max(axis=0) > high_b).any():
+                    continue
+            gd = path - prob.goal
+            hit = np.flatnonzero(np.einsum("ij,ij->i", gd, gd) <= tol2)
             if hit.size:
                 steps = int(hit[0]) + 1
                 traj = traj[: steps + 1]
