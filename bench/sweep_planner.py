@@ -6,7 +6,6 @@ Usage: python bench/sweep_planner.py  (about 2 minutes). Prints one row per sett
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from rrtcolearn.config import Config
