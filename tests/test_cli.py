@@ -139,3 +139,32 @@ def test_same_seed_same_dataset(tmp_path):
     assert digests[0] == digests[1]
     assert np.array_equal(load_dataset(tmp_path / "a" / "dataset.npz")[0].x1,
                           load_dataset(tmp_path / "b" / "dataset.npz")[0].x1)
+
+
+@pytest.mark.parametrize("spec, contains", [
+    ("box:-1,-1,1,1", "goal"),
+    ("box:1,2,3", "low and high"),
+    ("circle:0,0,1", "unknown type"),
+    ("box:a,b,c,d", "numbers"),
+])
+def test_bad_obstacles(tiny_run, tmp_path, spec, contains):
+    out = tmp_path / "p.json"
+    result = invoke("plan", "--model", str(tiny_run), "--obstacle", spec, "--out", str(out))
+    assert_one_line_error(result, contains=contains)
+    assert not out.exists()
+
+
+def test_u_max_and_obstacle_options(tiny_run, tmp_path):
+    out = tmp_path / "p.json"
+    result = invoke("plan", "--model", str(tiny_run), "--u-max", "3", "--obstacle",
+                    "box:-2,0.3,-1.2,2.5", "--max-iterations", "200", "--out", str(out))
+    assert result.exit_code == 0, result.output
+    d = json.loads(out.read_text())
+    assert d["u_max"] == 3.0 and d["obstacles"][0]["low"] == [-2.0, 0.3]
+    assert d["max_abs_u"] <= 3.0
+    result = invoke("generate", "--out", str(tmp_path / "g"), "--u-max", "1",
+                    "--set", "generate.n_simulations=200", "--set", "system.time_weight=0.1")
+    assert result.exit_code == 0, result.output
+    assert "u_max = 1.0" in (tmp_path / "g" / "config.toml").read_text()
+    result = invoke("generate", "--out", str(tmp_path / "h"), "--u-max", "-1")
+    assert_one_line_error(result, contains="u_max")

@@ -20,7 +20,7 @@ from rich.progress import (
 from rich.table import Table
 
 from rrtcolearn import __version__, pipeline
-from rrtcolearn.config import Config, load_config, read_toml
+from rrtcolearn.config import Config, add_obstacles, load_config, read_toml
 from rrtcolearn.errors import ConfigError, RRTCoLearnError
 
 app = typer.Typer(
@@ -37,6 +37,9 @@ ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="TOML con
 SeedOpt = Annotated[int | None, typer.Option("--seed", help="random seed (overrides config)")]
 OutOpt = Annotated[Path | None, typer.Option("--out", help="run directory (default runs/<name>)")]
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override: section.key=value")]
+UMaxOpt = Annotated[float | None, typer.Option("--u-max", help="torque limit |u| <= U_MAX")]
+ObstacleOpt = Annotated[list[str] | None, typer.Option(
+    "--obstacle", help="forbidden region: box:lo1,lo2,hi1,hi2 or halfplane:n1,n2,offset")]
 
 
 def _fail(message: str, code: int) -> None:
@@ -66,11 +69,15 @@ def _guard(fn):
 
 
 def _config(config: Path | None, seed: int | None, overrides: list[str] | None,
-            run_dir: Path | None = None) -> Config:
+            run_dir: Path | None = None, u_max: float | None = None,
+            obstacles: list[str] | None = None) -> Config:
     base = {}
     if run_dir is not None and (run_dir / "config.toml").is_file():
         base = read_toml(run_dir / "config.toml")
-    cfg = load_config(config, overrides, base=base)
+    overrides = list(overrides or [])
+    if u_max is not None:
+        overrides.append(f"system.u_max={u_max!r}")
+    cfg = add_obstacles(load_config(config, overrides, base=base), list(obstacles or []))
     if seed is not None:
         if seed < 0:
             raise ConfigError("--seed must be a non-negative integer")
@@ -123,6 +130,7 @@ def _plan_summary(p) -> dict:
     return {"status": p.status, "solved": p.solved, "iterations": p.iterations,
             "nodes": p.nodes, "path_cost": round(p.path_cost, 4),
             "path_duration": round(p.path_duration, 3),
+            "max_abs_u": round(p.max_abs_u, 4), "u_max": p.u_max,
             "planning_cpu_s": round(p.planning_cpu_s, 4)}
 
 
@@ -155,10 +163,10 @@ def systems() -> None:
 
 @app.command()
 def generate(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
-             set_: SetOpt = None) -> None:
+             set_: SetOpt = None, u_max: UMaxOpt = None) -> None:
     """Generate a dataset of optimal trajectory segments (Alg. 2)."""
     def body():
-        cfg = _config(config, seed, set_)
+        cfg = _config(config, seed, set_, u_max=u_max)
         run_dir = _run_dir(out, cfg)
         _print_summary(f"generate -> {run_dir}", _do_generate(cfg, run_dir))
     _guard(body)
@@ -209,6 +217,8 @@ def plan(
     out: Annotated[Path | None, typer.Option("--out", help="plan file (JSON)")] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    u_max: UMaxOpt = None,
+    obstacle: ObstacleOpt = None,
 ) -> None:
     """Plan one query with a fitted model; writes the plan JSON and a PNG of the tree."""
     def body():
@@ -225,8 +235,13 @@ def plan(
         # the model's own configuration is the base; only its plan section may change here
         if seed is not None and seed < 0:
             raise ConfigError("--seed must be a non-negative integer")
-        cfg = load_config(config, overrides, base={"plan": fitted.config.plan.model_dump()})
-        p_cfg = fitted.config.model_copy(update={"plan": cfg.plan})
+        if u_max is not None:
+            overrides.append(f"system.u_max={u_max!r}")
+        cfg = load_config(config, overrides, base={
+            "plan": fitted.config.plan.model_dump(),
+            "system": fitted.config.system.model_dump(exclude_none=True)})
+        cfg = add_obstacles(cfg, list(obstacle or []))
+        p_cfg = fitted.config.model_copy(update={"plan": cfg.plan, "system": cfg.system})
         plan_seed = seed if seed is not None else fitted.config.seed
         out_path = out if out is not None else run_dir / "plan.json"
         p = pipeline.plan(fitted, cfg.plan.start, cfg.plan.goal, cfg.plan.goal_tolerance,
@@ -239,10 +254,10 @@ def plan(
 
 @app.command()
 def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
-        set_: SetOpt = None) -> None:
+        set_: SetOpt = None, u_max: UMaxOpt = None, obstacle: ObstacleOpt = None) -> None:
     """The whole pipeline: generate, clean, fit, and plan the configured query."""
     def body():
-        cfg = _config(config, seed, set_)
+        cfg = _config(config, seed, set_, u_max=u_max, obstacles=obstacle)
         run_dir = _run_dir(out, cfg)
         t0 = time.perf_counter()
         figures = {"run_dir": str(run_dir)}
@@ -253,7 +268,7 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         figures["offline_cpu_s"] = round(figures["generate_cpu_s"] + figures["clean_cpu_s"]
                                          + figures["fit_cpu_s"], 3)
         p = pipeline.plan(fitted, cfg.plan.start, cfg.plan.goal, cfg.plan.goal_tolerance,
-                          cfg.seed, time_limit=cfg.plan.time_limit,
+                          cfg.seed, config=cfg, time_limit=cfg.plan.time_limit,
                           max_iterations=cfg.plan.max_iterations)
         _write_plan(p, run_dir / "plan.json")
         figures |= _plan_summary(p)

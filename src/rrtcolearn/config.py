@@ -10,10 +10,17 @@ import difflib
 import math
 import tomllib
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import tomli_w
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from rrtcolearn.errors import ConfigError
 
@@ -34,6 +41,8 @@ class _Section(BaseModel):
 class SystemConfig(_Section):
     name: str = "pendulum"
     time_weight: float = Field(1.0, gt=0, description="w in the running cost w + u^2/2")
+    u_max: float | None = Field(None, gt=0, description="torque limit |u| <= u_max (none: "
+                                "unbounded, the paper's setting)")
 
 
 class GenerateConfig(_Section):
@@ -63,6 +72,33 @@ class LearnConfig(_Section):
                                       description="max summed distance to the m neighbours")
 
 
+class BoxObstacle(_Section):
+    """Forbidden box low <= x <= high in state space."""
+
+    type: Literal["box"] = "box"
+    low: list[float]
+    high: list[float]
+
+    @model_validator(mode="after")
+    def _ordered(self) -> BoxObstacle:
+        if len(self.low) != len(self.high):
+            raise ValueError("low and high need the same number of values")
+        if any(lo > hi for lo, hi in zip(self.low, self.high, strict=True)):
+            raise ValueError("low must not exceed high")
+        return self
+
+
+class HalfPlaneObstacle(_Section):
+    """Forbidden half-space normal . x > offset."""
+
+    type: Literal["halfplane"] = "halfplane"
+    normal: list[float]
+    offset: float
+
+
+ObstacleConfig = Annotated[BoxObstacle | HalfPlaneObstacle, Field(discriminator="type")]
+
+
 class PlanConfig(_Section):
     start: list[float] = Field(default_factory=lambda: [-math.pi, 0.0])
     goal: list[float] = Field(default_factory=lambda: [0.0, 0.0])
@@ -73,6 +109,7 @@ class PlanConfig(_Section):
     decimals: int = Field(2, ge=0, le=12)
     time_limit: float | None = Field(10.0, gt=0)
     max_iterations: int | None = Field(None, ge=1)
+    obstacles: list[ObstacleConfig] = Field(default_factory=list)
 
 
 class Config(_Section):
@@ -115,6 +152,38 @@ def validate(data: dict[str, Any]) -> Config:
         return Config.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(_format_error(exc)) from None
+
+
+def parse_obstacle(spec: str) -> dict[str, Any]:
+    """``box:lo1,..,lon,hi1,..,hin`` or ``halfplane:n1,..,nn,offset`` -> obstacle config."""
+    kind, _, values = spec.partition(":")
+    try:
+        numbers = [float(v) for v in values.split(",")] if values else []
+    except ValueError:
+        raise ConfigError(f"--obstacle {spec!r}: values must be numbers") from None
+    kind = kind.strip().lower()
+    if kind == "box":
+        if len(numbers) < 2 or len(numbers) % 2:
+            raise ConfigError(f"--obstacle {spec!r}: a box needs low and high values, "
+                              "e.g. box:-2,-1,-1,1")
+        half = len(numbers) // 2
+        return {"type": "box", "low": numbers[:half], "high": numbers[half:]}
+    if kind == "halfplane":
+        if len(numbers) < 2:
+            raise ConfigError(f"--obstacle {spec!r}: a half-plane needs a normal and an "
+                              "offset, e.g. halfplane:0,1,2.5")
+        return {"type": "halfplane", "normal": numbers[:-1], "offset": numbers[-1]}
+    raise ConfigError(f"--obstacle {spec!r}: unknown type {kind!r}; use box:... or "
+                      "halfplane:...")
+
+
+def add_obstacles(config: Config, specs: list[str]) -> Config:
+    """``config`` with the command line's ``--obstacle`` specs appended to plan.obstacles."""
+    if not specs:
+        return config
+    data = config.model_dump()
+    data["plan"]["obstacles"] += [parse_obstacle(s) for s in specs]
+    return validate(data)
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:

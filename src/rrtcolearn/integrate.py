@@ -7,7 +7,8 @@ leaves a ball around its start), so no row costs more steps than it needs.
 
 numba can neither cache a function that receives another compiled function as an argument
 nor one that closes over it, so the kernels are kept as source and compiled into each system
-module's namespace by `define_kernels`, where they call that module's global ``rhs``.
+module's namespace by `define_kernels`, where they call that module's globals ``rhs`` and
+``input_max_abs(z)`` (the largest |u*_i| at ``z``).
 """
 
 from __future__ import annotations
@@ -54,7 +55,7 @@ def rollout_jit(z0, w, dt, n_steps):
 
 
 @_numba.njit(cache=True)
-def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_index, u_max):
+def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max):
     n_sims, d = z0.shape
     states = _np.empty((n_sims, max_steps, n))
     costs = _np.empty((n_sims, max_steps))
@@ -68,7 +69,7 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_index, u_ma
     znew = _np.empty(d)
     for i in range(n_sims):
         z[:] = z0[i]
-        if u_max > 0.0 and abs(z[u_index]) > u_max:
+        if u_max > 0.0 and input_max_abs(z) > u_max:
             continue
         for s in range(max_steps):
             _rk4_step(z, w, dt, k1, k2, k3, k4, tmp, znew)
@@ -82,7 +83,7 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_index, u_ma
                     ok = False
             if not ok or znew[d - 1] > max_cost or dist2 > max_dist * max_dist:
                 break
-            if u_max > 0.0 and abs(znew[u_index]) > u_max:
+            if u_max > 0.0 and input_max_abs(znew) > u_max:
                 break
             for j in range(n):
                 states[i, s, j] = znew[j]
@@ -96,7 +97,7 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_index, u_ma
 def define_kernels(namespace: dict) -> None:
     """Compile ``rollout_jit`` and ``rollout_batch_jit`` into a system module's namespace.
 
-    The module must define a compiled ``rhs(z, w, out)`` before calling this.
+    The module must define compiled ``rhs(z, w, out)`` and ``input_max_abs(z)`` first.
     """
     exec(compile(_KERNELS, namespace["__file__"], "exec"), namespace)
 
@@ -116,18 +117,18 @@ def rollout_batch(
     max_cost: float,
     max_dist: float,
     n: int,
-    u_index: int = 0,
     u_max: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Integrate rows of ``z0`` (S, 2n+1) until each stops.
 
     A row stops before the first step whose cost exceeds ``max_cost``, whose state is farther
     than ``max_dist`` from its start, that is not finite, or (when ``u_max`` is given) whose
-    |z[u_index]| (the costate that sets the input) exceeds ``u_max``. Returns states
+    optimal input exceeds ``u_max`` in magnitude; a row whose input at the start already
+    exceeds it yields no points. Returns states
     (S, max_steps, n), costs (S, max_steps) and lengths (S,): row i's first ``lengths[i]``
     steps are valid data points.
     """
     return system.rollout_batch_jit(
         np.ascontiguousarray(z0, dtype=np.float64), float(w), float(dt), int(max_steps),
-        float(max_cost), float(max_dist), int(n), int(u_index),
+        float(max_cost), float(max_dist), int(n),
         float(u_max) if u_max is not None else -1.0)

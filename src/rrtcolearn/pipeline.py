@@ -96,7 +96,8 @@ def generate(config: Config, run_dir: str | Path,
     data, stats = generate_data(
         system, seed_stream(config.seed, "generate"), g.n_simulations,
         time_weight=config.system.time_weight, dt=g.dt, max_cost=g.max_cost,
-        max_state_distance=g.max_state_distance, chunk_size=g.chunk_size, progress=progress)
+        max_state_distance=g.max_state_distance, chunk_size=g.chunk_size,
+        u_max=config.system.u_max, progress=progress)
     save_config(config, run_dir)
     save_dataset(run_dir / DATASET_FILE, data,
                  _meta(config, system, stats=dataclasses.asdict(stats)))
@@ -214,11 +215,25 @@ def load_model(run_dir: str | Path) -> FittedModel:
                        config.generate.max_state_distance)
 
 
+_FROM_CONFIG = object()
+
+
 def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, *,
          config: Config | None = None, time_limit: float | None = 10.0,
-         max_iterations: int | None = None) -> Plan:
-    """Plan one query with a fitted model (Alg. 1)."""
-    problem = PlanningProblem.create(model.system, start, goal, goal_tolerance)
+         max_iterations: int | None = None, u_max=_FROM_CONFIG, obstacles=_FROM_CONFIG,
+         is_valid=None) -> Plan:
+    """Plan one query with a fitted model (Alg. 1).
+
+    ``u_max`` and ``obstacles`` default to the configuration's (``config`` or the model's);
+    ``is_valid(states) -> bool array`` adds a user state validity checker.
+    """
+    cfg = config or model.config
+    if u_max is _FROM_CONFIG:
+        u_max = cfg.system.u_max
+    if obstacles is _FROM_CONFIG:
+        obstacles = [o.model_dump() for o in cfg.plan.obstacles]
+    problem = PlanningProblem.create(model.system, start, goal, goal_tolerance, u_max=u_max,
+                                     obstacles=obstacles, is_valid=is_valid)
     planner = RRTCoLearn(problem, model.functions, model.planner_settings(config))
     return planner.solve(TerminationCondition(time_limit, max_iterations), seed)
 

@@ -12,10 +12,52 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.collections import LineCollection
-from matplotlib.patches import Circle
+from matplotlib.patches import Circle, Polygon, Rectangle
 
 from rrtcolearn.data.store import atomic_write_bytes
 from rrtcolearn.planning.tree import Plan
+
+
+def plot_obstacles(ax, obstacles: list[dict], *, turns: tuple[int, ...] = (-1, 0, 1),
+                   angle_dim: int | None = 0) -> list:
+    """Shade obstacles (config dicts) in the first two state coordinates.
+
+    Obstacles cover every turn of an angle coordinate, so boxes are drawn shifted by
+    ``2*pi*k`` for each k in ``turns`` along ``angle_dim``.
+    """
+    artists = []
+    style = {"facecolor": "tab:gray", "alpha": 0.35, "edgecolor": "k", "lw": 0.8}
+    for k, ob in enumerate(obstacles):
+        label = "obstacle" if k == 0 else None
+        if ob["type"] == "box":
+            lo, hi = np.asarray(ob["low"])[:2], np.asarray(ob["high"])[:2]
+            for t in turns if angle_dim is not None else (0,):
+                shift = np.zeros(2)
+                if angle_dim is not None and angle_dim < 2:
+                    shift[angle_dim] = 2 * np.pi * t
+                artists.append(ax.add_patch(Rectangle(
+                    tuple(lo + shift), *(hi - lo), label=label if t == 0 else None, **style)))
+        elif ob["type"] == "halfplane":
+            normal, offset = np.asarray(ob["normal"])[:2], float(ob["offset"])
+            x0, x1 = ax.get_xlim()
+            y0, y1 = ax.get_ylim()
+            corners = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+            poly = _clip_halfplane(corners, normal, offset)
+            if len(poly):
+                artists.append(ax.add_patch(Polygon(poly, label=label, **style)))
+    return artists
+
+
+def _clip_halfplane(poly: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray:
+    """The part of a convex polygon where normal . x >= offset (Sutherland-Hodgman)."""
+    out = []
+    for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
+        da, db = a @ normal - offset, b @ normal - offset
+        if da >= 0:
+            out.append(a)
+        if da * db < 0:
+            out.append(a + (b - a) * da / (da - db))
+    return np.array(out)
 
 
 def plot_tree(ax, plan: Plan, *, max_edges: int | None = None) -> list:
@@ -39,9 +81,13 @@ def plot_tree(ax, plan: Plan, *, max_edges: int | None = None) -> list:
     artists.append(ax.add_patch(Circle(tuple(plan.goal[:2]), plan.goal_tolerance, fill=False,
                                        color="tab:green", lw=1.5)))
     artists.append(ax.plot(*plan.goal[:2], "*", color="tab:green", ms=10, label="goal")[0])
+    if plan.obstacles:
+        ax.autoscale_view()
+        artists += plot_obstacles(ax, plan.obstacles)
     ax.set_xlabel(r"$\theta$ [rad]")
     ax.set_ylabel(r"$\omega$ [rad/s]")
-    ax.set_title(f"{plan.system}: {plan.status}, {plan.nodes} nodes, "
+    limit = f", |u| <= {plan.u_max:g}" if plan.u_max is not None else ""
+    ax.set_title(f"{plan.system}{limit}: {plan.status}, {plan.nodes} nodes, "
                  f"{plan.iterations} iterations")
     ax.legend(loc="best", fontsize=8)
     ax.autoscale_view()

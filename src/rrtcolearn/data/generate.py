@@ -56,8 +56,7 @@ def simulate_chunk(
     # cost >= w*t bounds every simulation's duration
     max_steps = int(np.ceil(max_cost / (time_weight * dt))) + 1 if time_weight > 0 else 10_000
     states, costs, lengths = rollout_batch(
-        system, z0, time_weight, dt, max_steps, max_cost, max_state_distance, n,
-        u_index=2 * n - 1, u_max=u_max,
+        system, z0, time_weight, dt, max_steps, max_cost, max_state_distance, n, u_max=u_max,
     )
     mask = np.arange(max_steps)[None, :] < lengths[:, None]
     rows, steps = np.nonzero(mask)

@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from rrtcolearn.errors import RRTCoLearnError
+from rrtcolearn.planning.validity import (
+    Obstacle,
+    ObstacleChecker,
+    StateValidityChecker,
+    obstacle_from_dict,
+)
 from rrtcolearn.systems.base import System
 
 
@@ -39,22 +46,49 @@ class PlanningProblem:
     """Plan from ``start`` to the ball of radius ``goal_tolerance`` around ``goal``.
 
     The goal test is the Euclidean distance in state coordinates (paper Experiments).
+    ``u_max`` bounds |u| along every edge (None: unbounded, the paper's setting);
+    ``validity`` is the state validity checker (obstacles), checked at every RK4 step.
     """
 
     system: System
     start: np.ndarray
     goal: np.ndarray
     goal_tolerance: float = 0.1
+    u_max: float | None = None
+    validity: ObstacleChecker = field(default_factory=ObstacleChecker)
 
     @classmethod
-    def create(cls, system: System, start, goal, goal_tolerance: float = 0.1) -> PlanningProblem:
+    def create(cls, system: System, start, goal, goal_tolerance: float = 0.1, *,
+               u_max: float | None = None,
+               obstacles: Sequence[Obstacle | dict] = (),
+               is_valid: StateValidityChecker | None = None) -> PlanningProblem:
         """Validated problem; raises ProblemError with a one-line reason."""
         start = check_state(system, start, "start")
         goal = check_state(system, goal, "goal")
-        tol = float(goal_tolerance)
+        try:
+            tol = float(goal_tolerance)
+        except (TypeError, ValueError):
+            tol = float("nan")
         if not np.isfinite(tol) or tol <= 0:
             raise ProblemError(f"goal tolerance must be a positive number, got {goal_tolerance!r}")
-        return cls(system, start, goal, tol)
+        if u_max is not None and not (np.isfinite(u_max) and u_max > 0):
+            raise ProblemError(f"u_max must be a positive number, got {u_max!r}")
+        try:
+            built = [o if isinstance(o, Obstacle) else obstacle_from_dict(o, system.n_states)
+                     for o in obstacles]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ProblemError(f"invalid obstacle: {exc}") from None
+
+        def wrap(x: np.ndarray) -> np.ndarray:
+            return x + system.wrap_shift(x)
+
+        validity = ObstacleChecker(built, is_valid, wrap)
+        if validity:
+            for what, x in (("start", start), ("goal", goal)):
+                if not validity(x[None])[0]:
+                    raise ProblemError(f"the {what} {x.tolist()} lies inside an obstacle")
+        return cls(system, start, goal, tol, None if u_max is None else float(u_max),
+                   validity)
 
     def within_bounds(self, x: np.ndarray) -> np.ndarray:
         """(N,) True where states (N, n) lie inside the state box in its non-angle coordinates.

@@ -55,8 +55,10 @@ class RRTCoLearn:
     Each iteration samples a target (the goal with probability ``goal_bias``, else uniform in
     the system's state box), keeps the tree nodes whose query (node, target) is valid under V,
     expands the one with the least predicted cost-to-go J, draws steering parameters around
-    U's prediction and integrates the state+costate ODEs. An edge that passes through the goal
-    region is cut at its first state inside it.
+    U's prediction and integrates the state+costate ODEs. An edge is cut at its first state
+    inside the goal region, or before its first state that the problem's validity checker
+    rejects (obstacles); it is rejected when it leaves the state box in a non-angle
+    coordinate or when its input exceeds the problem's ``u_max`` anywhere.
     """
 
     def __init__(self, problem: PlanningProblem, model: LearnedFunctions,
@@ -97,6 +99,7 @@ class RRTCoLearn:
         tol2 = prob.goal_tolerance**2
         bounded = sys.bounded_dims
         low_b, high_b = sys.state_low[bounded], sys.state_high[bounded]
+        check_states = bool(prob.validity)
         lam = np.empty(n)
         z0 = np.empty(2 * n + 1)
         goal_node = -1
@@ -143,14 +146,27 @@ class RRTCoLearn:
                 pb = path[:, bounded]
                 if (pb.min(axis=0) < low_b).any() or (pb.max(axis=0) > high_b).any():
                     continue
-            gd = path - prob.goal
+            end = steps
+            if check_states:
+                # cut the edge at its last valid state, as OMPL's propagateWhileValid does
+                invalid = np.flatnonzero(~prob.validity(path))
+                if invalid.size:
+                    end = int(invalid[0])
+            gd = path[:end] - prob.goal
             hit = np.flatnonzero(np.einsum("ij,ij->i", gd, gd) <= tol2)
             if hit.size:
-                steps = int(hit[0]) + 1
-                traj = traj[: steps + 1]
+                end = int(hit[0]) + 1
+            if end == 0:
+                continue
+            if end < steps:
+                traj = traj[: end + 1]
+                steps = end
                 params[-1] = steps * s.dt
+            u_abs = float(np.abs(sys.optimal_control(traj[:, :n], traj[:, n : 2 * n])).max())
+            if prob.u_max is not None and u_abs > prob.u_max:
+                continue
             node = tree.add(traj[-1, :n], parent, lam, params[:-1], steps * s.dt,
-                            traj[-1, 2 * n], traj[:, :n])
+                            traj[-1, 2 * n], traj[:, :n], u_abs)
             if node == shifts.shape[0]:
                 shifts = np.concatenate([shifts, np.empty_like(shifts)])
             shifts[node] = sys.wrap_shift(traj[-1:, :n])[0]
@@ -168,5 +184,6 @@ class RRTCoLearn:
             system=sys.name, start=prob.start, goal=prob.goal,
             goal_tolerance=prob.goal_tolerance, time_weight=s.time_weight, dt=s.dt,
             status=status, planning_time_s=wall, planning_cpu_s=cpu, iterations=iterations,
-            tree=tree, path_nodes=tree.path_to(end),
+            tree=tree, path_nodes=tree.path_to(end), u_max=prob.u_max,
+            obstacles=[o.to_dict() for o in prob.validity.obstacles],
         )

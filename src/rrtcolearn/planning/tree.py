@@ -12,7 +12,8 @@ class PlannerData:
 
     Edge i (into node i) starts at ``states[parents[i]]`` with ``costates[i]`` and runs for
     ``durations[i]`` seconds at cost ``costs[i]``; ``params[i]`` are the steering parameters
-    that produced it. ``trajectories[i]`` holds its integrated states, for drawing.
+    that produced it, ``max_abs_u[i]`` the largest |u| along it. ``trajectories[i]`` holds
+    its integrated states, for drawing.
     """
 
     def __init__(self, root: np.ndarray, n_params: int, capacity: int = 256):
@@ -24,17 +25,21 @@ class PlannerData:
         self.params = np.empty((capacity, n_params))
         self.durations = np.empty(capacity)
         self.costs = np.empty(capacity)
+        self.max_abs_u = np.empty(capacity)
         self.trajectories: list[np.ndarray] = []
-        self.add(root, -1, np.full(n, np.nan), np.full(n_params, np.nan), 0.0, 0.0, root[None])
+        self.add(root, -1, np.full(n, np.nan), np.full(n_params, np.nan), 0.0, 0.0, root[None],
+                 0.0)
 
     def _grow(self) -> None:
-        for name in ("states", "parents", "costates", "params", "durations", "costs"):
+        for name in ("states", "parents", "costates", "params", "durations", "costs",
+                     "max_abs_u"):
             old = getattr(self, name)
             new = np.empty((2 * old.shape[0], *old.shape[1:]), dtype=old.dtype)
             new[: self.n_nodes] = old[: self.n_nodes]
             setattr(self, name, new)
 
-    def add(self, state, parent, costate, params, duration, cost, trajectory) -> int:
+    def add(self, state, parent, costate, params, duration, cost, trajectory,
+            max_abs_u) -> int:
         if self.n_nodes == self.states.shape[0]:
             self._grow()
         i = self.n_nodes
@@ -44,6 +49,7 @@ class PlannerData:
         self.params[i] = params
         self.durations[i] = duration
         self.costs[i] = cost
+        self.max_abs_u[i] = max_abs_u
         self.trajectories.append(trajectory)
         self.n_nodes += 1
         return i
@@ -73,6 +79,8 @@ class Plan:
     iterations: int
     tree: PlannerData
     path_nodes: list[int] = field(default_factory=list)
+    u_max: float | None = None
+    obstacles: list[dict] = field(default_factory=list)
     extra: dict = field(default_factory=dict)
 
     @property
@@ -88,6 +96,11 @@ class Plan:
         return float(sum(self.tree.costs[i] for i in self.path_nodes[1:]))
 
     @property
+    def max_abs_u(self) -> float:
+        """Largest |u| along the path."""
+        return float(max((self.tree.max_abs_u[i] for i in self.path_nodes[1:]), default=0.0))
+
+    @property
     def path_duration(self) -> float:
         return float(sum(self.tree.durations[i] for i in self.path_nodes[1:]))
 
@@ -101,6 +114,7 @@ class Plan:
                 "params": t.params[i].tolist(),
                 "duration": float(t.durations[i]),
                 "cost": float(t.costs[i]),
+                "max_abs_u": float(t.max_abs_u[i]),
             }
             for i in self.path_nodes[1:]
         ]
@@ -123,6 +137,9 @@ class Plan:
             "nodes": n,
             "path_cost": self.path_cost,
             "path_duration": self.path_duration,
+            "u_max": self.u_max,
+            "max_abs_u": self.max_abs_u,
+            "obstacles": self.obstacles,
             "final_goal_distance": float(np.linalg.norm(
                 t.states[self.path_nodes[-1]] - self.goal)) if self.path_nodes else None,
             **self.extra,

@@ -36,6 +36,11 @@ def _rhs(z, w, out):
     out[4] = w + 0.5 * l_om * l_om
 
 
+@numba.njit(cache=True)
+def input_max_abs(z):
+    return abs(z[3])  # u* = -lambda_omega
+
+
 rhs = _rhs
 define_kernels(globals())  # rollout_jit, rollout_batch_jit
 
