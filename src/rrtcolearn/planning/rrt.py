@@ -100,6 +100,7 @@ class RRTCoLearn:
         bounded = sys.bounded_dims
         low_b, high_b = sys.state_low[bounded], sys.state_high[bounded]
         check_states = bool(prob.validity)
+        u_max = prob.u_max
         lam = np.empty(n)
         z0 = np.empty(2 * n + 1)
         goal_node = -1
@@ -129,14 +130,18 @@ class RRTCoLearn:
                 None, neighbours[best : best + 1])[0]
             x0 = states[parent]
             sigma = s.sigma_goal if to_goal else s.sigma
+            z0[:n], z0[2 * n] = x0, 0.0
+            # redraw parameters whose costate does not exist or whose input already breaks
+            # the limit at the start: such an edge would be rejected without integrating it
             for _ in range(s.max_resample):
                 params = self._sample_params(rng, prediction, sigma)
                 if sys.costate_from_params_jit(x0, params[:-1], s.time_weight, lam):
-                    break
+                    z0[n : 2 * n] = lam
+                    if u_max is None or sys.input_max_abs_jit(z0) <= u_max:
+                        break
             else:
                 continue
             steps = max(1, round(params[-1] / s.dt))
-            z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
             traj = rollout(sys, z0, s.time_weight, s.dt, steps)
             # non-finite values propagate to the last RK4 step, so checking it suffices
             if not np.isfinite(traj[-1]).all():

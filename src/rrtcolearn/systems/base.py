@@ -28,6 +28,7 @@ class System:
     rhs : compiled ``rhs(z, w, out)`` for ``z = (x, lambda, cost)`` of length ``2n+1``:
         the state+costate ODE under u* and the running cost as the last entry.
     rollout_jit, rollout_batch_jit : the RK4 kernels of ``integrate`` compiled for ``rhs``.
+    input_max_abs_jit : compiled ``z -> max_i |u*_i|`` at ``z``.
     costate_from_params : ``(x (N,n), p (N,k), w) -> (lambda (N,n), valid (N,))``.
     costate_from_params_jit : compiled scalar version for one state, used by the planner.
     optimal_control : ``(x (N,n), lambda (N,n)) -> u* (N,m)``, u* = argmin_u H.
@@ -47,6 +48,7 @@ class System:
     rhs: Callable
     rollout_jit: Callable
     rollout_batch_jit: Callable
+    input_max_abs_jit: Callable
     costate_from_params: Callable
     costate_from_params_jit: Callable
     optimal_control: Callable

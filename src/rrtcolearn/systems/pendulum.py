@@ -97,6 +97,7 @@ def make_pendulum() -> System:
         rhs=_rhs,
         rollout_jit=rollout_jit,  # noqa: F821 - defined by define_kernels
         rollout_batch_jit=rollout_batch_jit,  # noqa: F821
+        input_max_abs_jit=input_max_abs,
         costate_from_params=costate_from_params,
         costate_from_params_jit=_costate_from_params_jit,
         optimal_control=optimal_control,
