@@ -33,6 +33,8 @@ class System:
     costate_from_params_jit : compiled scalar version for one state, used by the planner.
     optimal_control : ``(x (N,n), lambda (N,n)) -> u* (N,m)``, u* = argmin_u H.
     hamiltonian : ``(x, lambda, u, w) -> H (N,)``.
+    dynamics : ``(x (N,n), u (N,m)) -> x' (N,n)``, the plain dynamics (for planners that
+        choose inputs directly, and for independent checks).
     """
 
     name: str
@@ -53,6 +55,7 @@ class System:
     costate_from_params_jit: Callable
     optimal_control: Callable
     hamiltonian: Callable
+    dynamics: Callable
     description: str = ""
     defaults: dict = field(default_factory=dict)
 

@@ -80,6 +80,11 @@ def hamiltonian(x: np.ndarray, lam: np.ndarray, u: np.ndarray, w: float) -> np.n
     return w + 0.5 * u0 * u0 + lam[:, 0] * x[:, 1] + lam[:, 1] * (np.sin(x[:, 0]) + u0)
 
 
+def dynamics(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """f(x, u) = (omega, sin(theta) + u), shape (N, 2)."""
+    return np.stack([x[:, 1], np.sin(x[:, 0]) + u[:, 0]], axis=1)
+
+
 def make_pendulum() -> System:
     """The paper's pendulum: theta0 ~ U(-3pi/2, pi/2), omega0 ~ U(-pi, pi),
     phi ~ U(-pi/2, 3pi/2)."""
@@ -102,6 +107,7 @@ def make_pendulum() -> System:
         costate_from_params_jit=_costate_from_params_jit,
         optimal_control=optimal_control,
         hamiltonian=hamiltonian,
+        dynamics=dynamics,
         description="Pendulum swing-up, x = (theta, omega), f = (omega, sin(theta) + u)",
         defaults={"start": [-np.pi, 0.0], "goal": [0.0, 0.0]},
     )
