@@ -22,6 +22,7 @@ from rich.table import Table
 from rrtcolearn import __version__, pipeline
 from rrtcolearn.config import Config, add_obstacles, load_config, read_toml
 from rrtcolearn.errors import ConfigError, RRTCoLearnError
+from rrtcolearn.parallel import ExecutionSettings
 
 app = typer.Typer(
     add_completion=False,
@@ -38,6 +39,12 @@ SeedOpt = Annotated[int | None, typer.Option("--seed", help="random seed (overri
 OutOpt = Annotated[Path | None, typer.Option("--out", help="run directory (default runs/<name>)")]
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override: section.key=value")]
 UMaxOpt = Annotated[float | None, typer.Option("--u-max", help="torque limit |u| <= U_MAX")]
+WorkersOpt = Annotated[int | None, typer.Option(
+    "--workers", help="local worker processes (results do not depend on it)")]
+SchedulerOpt = Annotated[str | None, typer.Option(
+    "--scheduler", help="Dask scheduler address, e.g. tcp://host:8786")]
+DaskLocalOpt = Annotated[int | None, typer.Option(
+    "--dask-local", help="start a Dask LocalCluster with this many workers")]
 ObstacleOpt = Annotated[list[str] | None, typer.Option(
     "--obstacle", help="forbidden region: box:lo1,lo2,hi1,hi2 or halfplane:n1,n2,offset")]
 
@@ -95,13 +102,15 @@ def _progress() -> Progress:
                     disable=not console.is_terminal and not _state.get("force_progress"))
 
 
-def _do_generate(cfg: Config, run_dir: Path) -> dict:
+def _do_generate(cfg: Config, run_dir: Path, settings=None) -> dict:
     with _progress() as bar:
         task = bar.add_task("generate (Alg. 2)", total=cfg.generate.n_simulations)
         (_, stats), cpu = pipeline.timed(pipeline.generate, cfg, run_dir,
-                                            progress=lambda k: bar.advance(task, k))
+                                         progress=lambda k: bar.advance(task, k),
+                                         settings=settings)
     return {"simulations": stats.simulations, "invalid_costates": stats.invalid_costates,
-            "raw_points": stats.points, "generate_cpu_s": round(cpu, 3)}
+            "raw_points": stats.points, "resumed_chunks": stats.resumed_chunks,
+            "generate_cpu_s": round(cpu, 3)}
 
 
 def _do_clean(cfg: Config, run_dir: Path) -> dict:
@@ -163,12 +172,14 @@ def systems() -> None:
 
 @app.command()
 def generate(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
-             set_: SetOpt = None, u_max: UMaxOpt = None) -> None:
-    """Generate a dataset of optimal trajectory segments (Alg. 2)."""
+             set_: SetOpt = None, u_max: UMaxOpt = None, workers: WorkersOpt = None,
+             scheduler: SchedulerOpt = None, dask_local: DaskLocalOpt = None) -> None:
+    """Generate a dataset of optimal trajectory segments (Alg. 2); resumable."""
     def body():
+        settings = ExecutionSettings.from_options(workers, scheduler, dask_local)
         cfg = _config(config, seed, set_, u_max=u_max)
         run_dir = _run_dir(out, cfg)
-        _print_summary(f"generate -> {run_dir}", _do_generate(cfg, run_dir))
+        _print_summary(f"generate -> {run_dir}", _do_generate(cfg, run_dir, settings))
     _guard(body)
 
 
@@ -254,14 +265,17 @@ def plan(
 
 @app.command()
 def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
-        set_: SetOpt = None, u_max: UMaxOpt = None, obstacle: ObstacleOpt = None) -> None:
+        set_: SetOpt = None, u_max: UMaxOpt = None, obstacle: ObstacleOpt = None,
+        workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+        dask_local: DaskLocalOpt = None) -> None:
     """The whole pipeline: generate, clean, fit, and plan the configured query."""
     def body():
+        settings = ExecutionSettings.from_options(workers, scheduler, dask_local)
         cfg = _config(config, seed, set_, u_max=u_max, obstacles=obstacle)
         run_dir = _run_dir(out, cfg)
         t0 = time.perf_counter()
         figures = {"run_dir": str(run_dir)}
-        figures |= _do_generate(cfg, run_dir)
+        figures |= _do_generate(cfg, run_dir, settings)
         figures |= _do_clean(cfg, run_dir)
         fitted, fit_fig = _do_fit(cfg, run_dir)
         figures |= fit_fig
@@ -275,6 +289,21 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         figures["wall_s"] = round(time.perf_counter() - t0, 2)
         pipeline.write_json(run_dir / "summary.json", figures)
         _print_summary(f"run -> {run_dir}", figures)
+    _guard(body)
+
+
+@app.command()
+def inspect(run_dir: Annotated[Path, typer.Argument(help="run directory")]) -> None:
+    """Size and content digest (SHA-256) of every artefact of a run directory.
+
+    Digests depend on content only (not on chunking, workers or file layout), so two labs can
+    check that they hold the same dataset.
+    """
+    def body():
+        rows = pipeline.inspect_run(run_dir)
+        width = max([len(r["file"]) for r in rows], default=4)
+        for r in rows:
+            typer.echo(f"{r['file']:<{width}}  {r['kind']:<7}  {r['bytes']:>11}  {r['sha256']}")
     _guard(body)
 
 

@@ -14,6 +14,9 @@ Run directory layout::
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
+import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,12 +25,19 @@ from pathlib import Path
 import numpy as np
 
 from rrtcolearn import __version__
-from rrtcolearn.config import Config, to_toml
+from rrtcolearn.config import Config, read_toml, to_toml
 from rrtcolearn.data.clean import CleaningResult, clean_data
 from rrtcolearn.data.dataset import Dataset
-from rrtcolearn.data.generate import GenerationStats, generate_data
+from rrtcolearn.data.generate import (
+    GenerationStats,
+    generation_tasks,
+    merge,
+    run_generation_task,
+)
 from rrtcolearn.data.store import (
+    ShardStore,
     atomic_write_text,
+    digest,
     load_dataset,
     read_json,
     save_dataset,
@@ -35,6 +45,7 @@ from rrtcolearn.data.store import (
 )
 from rrtcolearn.errors import ArtefactError, ConfigError
 from rrtcolearn.learn.models import LearnedFunctions
+from rrtcolearn.parallel import ExecutionSettings, map_tasks
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
@@ -87,20 +98,63 @@ def save_config(config: Config, run_dir: Path) -> None:
     atomic_write_text(Path(run_dir) / "config.toml", to_toml(config))
 
 
+def _generation_key(config: Config, system: System) -> str:
+    """Digest of everything the raw dataset depends on (not of how it is scheduled)."""
+    spec = {"seed": config.seed, "system": config.system.model_dump(mode="json"),
+            "generate": config.generate.model_dump(mode="json"),
+            "box": [system.state_low.tolist(), system.state_high.tolist(),
+                    system.param_low.tolist(), system.param_high.tolist()]}
+    return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
+
+
 def generate(config: Config, run_dir: str | Path,
-             progress: Callable[[int], None] | None = None) -> tuple[Dataset, GenerationStats]:
-    """Alg. 2 with the configured parameters; writes ``dataset.npz``."""
+             progress: Callable[[int], None] | None = None,
+             settings: ExecutionSettings | None = None) -> tuple[Dataset, GenerationStats]:
+    """Alg. 2 with the configured parameters; writes ``dataset.npz``.
+
+    Resumable: each finished chunk is written atomically as a shard under
+    ``shards/generate/`` beside a manifest; a rerun with the same configuration loads the
+    finished shards and computes only the rest, and a finished dataset is not recomputed.
+    """
     run_dir = Path(run_dir)
     system = build_system(config)
+    key = _generation_key(config, system)
+    final = run_dir / DATASET_FILE
+    if final.is_file():
+        try:
+            data, meta = load_dataset(final, system.name)
+            if meta.get("generation_key") == key:
+                if progress is not None:
+                    progress(config.generate.n_simulations)
+                return data, GenerationStats(**meta["stats"])
+        except ArtefactError:
+            pass  # a damaged or foreign file is regenerated
     g = config.generate
-    data, stats = generate_data(
+    tasks = generation_tasks(
         system, seed_stream(config.seed, "generate"), g.n_simulations,
         time_weight=config.system.time_weight, dt=g.dt, max_cost=g.max_cost,
         max_state_distance=g.max_state_distance, chunk_size=g.chunk_size,
-        u_max=config.system.u_max, progress=progress)
+        u_max=config.system.u_max)
+    shards = ShardStore(run_dir / "shards" / "generate", key, len(tasks))
+    parts: list = [shards.load(t.chunk, system.name) for t in tasks]
+    todo = [t for t, part in zip(tasks, parts, strict=True) if part is None]
+    if progress is not None:
+        progress(sum(t.count for t, part in zip(tasks, parts, strict=True) if part is not None))
+
+    def finished(i: int, result) -> None:
+        task = todo[i]
+        shards.save(task.chunk, result, {"system": system.name})
+        parts[task.chunk] = result
+        if progress is not None:
+            progress(task.count)
+
+    map_tasks(run_generation_task, todo, settings, finished)
+    data, stats = merge(parts)
+    stats = dataclasses.replace(stats, resumed_chunks=len(tasks) - len(todo))
     save_config(config, run_dir)
-    save_dataset(run_dir / DATASET_FILE, data,
-                 _meta(config, system, stats=dataclasses.asdict(stats)))
+    save_dataset(final, data, _meta(config, system, stats=dataclasses.asdict(stats),
+                                    generation_key=key))
+    shards.remove()
     return data, stats
 
 
@@ -243,8 +297,52 @@ def write_plan(p: Plan, path: str | Path) -> None:
     write_json(path, p.to_dict())
 
 
+def _cpu_seconds() -> float:
+    """CPU time of this process and of its finished child processes (local workers)."""
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
 def timed(fn, *args, **kwargs):
-    """(result, process CPU seconds) of a call."""
-    t0 = time.process_time()
+    """(result, CPU seconds of this process and the worker processes it waited for)."""
+    t0 = _cpu_seconds()
     out = fn(*args, **kwargs)
-    return out, time.process_time() - t0
+    return out, _cpu_seconds() - t0
+
+
+_TIMING_KEYS = {"planning_time_s", "planning_cpu_s", "wall_s", "generate_cpu_s", "clean_cpu_s",
+                "fit_cpu_s", "offline_cpu_s"}
+
+
+def content_digest(path: str | Path) -> tuple[str, str]:
+    """(kind, SHA-256) of an artefact's content, independent of chunking and file layout.
+
+    Datasets: the expanded arrays (x0, x1, cost, params, duration, costate, simulation) in
+    name order; JSON and TOML: the canonical JSON of their content without timing fields;
+    anything else: the file's bytes.
+    """
+    path = Path(path)
+    if path.suffix == ".npz":
+        data, _ = load_dataset(path)
+        return "dataset", digest(data.arrays())
+    if path.suffix in (".json", ".toml"):
+        content = read_json(path) if path.suffix == ".json" else read_toml(path)
+        if isinstance(content, dict):
+            content = {k: v for k, v in content.items() if k not in _TIMING_KEYS}
+        canon = json.dumps(content, sort_keys=True, separators=(",", ":"))
+        return path.suffix[1:], hashlib.sha256(canon.encode()).hexdigest()
+    return "file", hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def inspect_run(run_dir: str | Path) -> list[dict]:
+    """Size and content digest of every artefact in a run directory."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise ArtefactError(f"run directory not found: {run_dir}")
+    rows = []
+    for path in sorted(p for p in run_dir.iterdir() if p.is_file()
+                       and not p.name.startswith(".")):
+        kind, sha = content_digest(path)
+        rows.append({"file": path.name, "kind": kind, "bytes": path.stat().st_size,
+                     "sha256": sha})
+    return rows

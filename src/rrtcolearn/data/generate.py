@@ -14,6 +14,7 @@ import numpy as np
 
 from rrtcolearn.data.dataset import Dataset
 from rrtcolearn.integrate import rollout_batch
+from rrtcolearn.parallel import ExecutionSettings, map_tasks
 from rrtcolearn.systems.base import System
 
 
@@ -23,6 +24,7 @@ class GenerationStats:
     invalid_costates: int
     empty_simulations: int
     points: int
+    resumed_chunks: int = 0  # chunks loaded from shards of an interrupted run
 
 
 def sample_starts(system: System, rng: np.random.Generator, n: int,
@@ -91,6 +93,67 @@ def concatenate(parts: list[Dataset]) -> Dataset:
     return Dataset.from_arrays({k: np.concatenate([a[k] for a in arrays]) for k in arrays[0]})
 
 
+@dataclass(frozen=True)
+class GenerationTask:
+    """One chunk of Alg. 2: picklable, carrying its own seed."""
+
+    system: System
+    chunk: int
+    first: int
+    count: int
+    seed: np.random.SeedSequence
+    time_weight: float
+    dt: float
+    max_cost: float
+    max_state_distance: float
+    u_max: float | None
+
+
+def run_generation_task(task: GenerationTask) -> tuple[Dataset, GenerationStats]:
+    """Generate one chunk (top-level so that worker processes can import it)."""
+    return simulate_chunk(
+        task.system, task.seed, task.count, task.first, time_weight=task.time_weight,
+        dt=task.dt, max_cost=task.max_cost, max_state_distance=task.max_state_distance,
+        u_max=task.u_max)
+
+
+def generation_tasks(
+    system: System,
+    seed: int | np.random.SeedSequence,
+    n_simulations: int,
+    *,
+    time_weight: float = 1.0,
+    dt: float = 0.01,
+    max_cost: float = 2.0,
+    max_state_distance: float = 1.5,
+    chunk_size: int = 2000,
+    u_max: float | None = None,
+) -> list[GenerationTask]:
+    """Alg. 2 split into chunks; chunk c is seeded by ``SeedSequence(seed).spawn(n)[c]``."""
+    if n_simulations < 1 or chunk_size < 1:
+        raise ValueError("n_simulations and chunk_size must be positive")
+    n_chunks = -(-n_simulations // chunk_size)
+    seeds = _fresh(seed).spawn(n_chunks)
+    return [
+        GenerationTask(system, c, c * chunk_size,
+                       min(chunk_size, n_simulations - c * chunk_size), ss, time_weight, dt,
+                       max_cost, max_state_distance, u_max)
+        for c, ss in enumerate(seeds)
+    ]
+
+
+def merge(parts: list[tuple[Dataset, GenerationStats]]) -> tuple[Dataset, GenerationStats]:
+    """Chunks in chunk order -> one dataset and summed statistics."""
+    stats = [st for _, st in parts]
+    total = GenerationStats(
+        simulations=sum(s.simulations for s in stats),
+        invalid_costates=sum(s.invalid_costates for s in stats),
+        empty_simulations=sum(s.empty_simulations for s in stats),
+        points=sum(s.points for s in stats),
+    )
+    return concatenate([d for d, _ in parts]), total
+
+
 def generate_data(
     system: System,
     seed: int | np.random.SeedSequence,
@@ -102,32 +165,18 @@ def generate_data(
     max_state_distance: float = 1.5,
     chunk_size: int = 2000,
     u_max: float | None = None,
+    settings: ExecutionSettings | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> tuple[Dataset, GenerationStats]:
     """Alg. 2 over ``n_simulations`` simulations in fixed-size chunks.
 
-    Chunk c uses ``SeedSequence(seed).spawn(n_chunks)[c]``, so the dataset depends on the seed
-    and ``chunk_size`` only, never on how chunks are scheduled. ``progress(k)`` is called with
-    the number of simulations finished after each chunk.
+    The dataset depends on the seed and ``chunk_size`` only, never on the backend or the
+    number of workers (``settings``). ``progress(k)`` is called with the number of
+    simulations of each finished chunk.
     """
-    n_chunks = max(1, -(-n_simulations // chunk_size))
-    seeds = _fresh(seed).spawn(n_chunks)
-    parts, stats = [], []
-    for c, ss in enumerate(seeds):
-        first = c * chunk_size
-        count = min(chunk_size, n_simulations - first)
-        data, st = simulate_chunk(
-            system, ss, count, first, time_weight=time_weight, dt=dt, max_cost=max_cost,
-            max_state_distance=max_state_distance, u_max=u_max,
-        )
-        parts.append(data)
-        stats.append(st)
-        if progress is not None:
-            progress(count)
-    total = GenerationStats(
-        simulations=sum(s.simulations for s in stats),
-        invalid_costates=sum(s.invalid_costates for s in stats),
-        empty_simulations=sum(s.empty_simulations for s in stats),
-        points=sum(s.points for s in stats),
-    )
-    return concatenate(parts), total
+    tasks = generation_tasks(system, seed, n_simulations, time_weight=time_weight, dt=dt,
+                             max_cost=max_cost, max_state_distance=max_state_distance,
+                             chunk_size=chunk_size, u_max=u_max)
+    parts = map_tasks(run_generation_task, tasks, settings,
+                      None if progress is None else lambda i, r: progress(tasks[i].count))
+    return merge(parts)

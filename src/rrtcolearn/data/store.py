@@ -10,10 +10,12 @@ interrupted run leaves either the old file or the new one, never a torn one.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import io
 import json
 import os
+import shutil
 import uuid
 import zipfile
 from pathlib import Path
@@ -171,3 +173,53 @@ def load_dataset(path: str | os.PathLike, system: str | None = None) -> tuple[Da
     except (KeyError, IndexError, ValueError) as exc:
         raise ArtefactError(f"{path} is not a consistent dataset ({exc})") from None
     return data, meta
+
+
+SHARD_MANIFEST = "manifest.json"
+
+
+class ShardStore:
+    """Finished chunks of a long computation, one atomically written file each.
+
+    The manifest names the computation (``key``) and its number of chunks; shards of another
+    computation found in the directory are discarded, and a shard that fails to load is
+    recomputed, so nothing half-written or foreign is ever used.
+    """
+
+    def __init__(self, directory: str | os.PathLike, key: str, n_chunks: int):
+        self.directory = Path(directory)
+        manifest = {"format": "rrtcolearn.shards", "schema_version": SCHEMA_VERSION,
+                    "key": key, "n_chunks": n_chunks}
+        path = self.directory / SHARD_MANIFEST
+        current = None
+        if path.is_file():
+            with contextlib.suppress(ArtefactError):
+                current = read_json(path)
+        if current != manifest:
+            self.remove()
+            write_json(path, manifest)
+
+    def _path(self, chunk: int) -> Path:
+        return self.directory / f"chunk-{chunk:06d}.npz"
+
+    def load(self, chunk: int, system: str):
+        """(Dataset, GenerationStats-like dict) of a finished chunk, or None."""
+        path = self._path(chunk)
+        if not path.is_file():
+            return None
+        try:
+            data, meta = load_dataset(path, system)
+        except ArtefactError:
+            return None
+        from rrtcolearn.data.generate import GenerationStats
+
+        return data, GenerationStats(**meta["stats"])
+
+    def save(self, chunk: int, result, meta: dict) -> None:
+        data, stats = result
+        save_dataset(self._path(chunk), data, {**meta, "chunk": chunk,
+                                               "stats": dataclasses.asdict(stats)})
+
+    def remove(self) -> None:
+        if self.directory.is_dir():
+            shutil.rmtree(self.directory)
