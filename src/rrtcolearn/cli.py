@@ -293,6 +293,45 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
 
 
 @app.command()
+def experiment(
+    config: ConfigOpt = None, seed: SeedOpt = None,
+    out: Annotated[Path | None, typer.Option("--out", help="experiment directory "
+                                             "(default runs/<name>-experiment)")] = None,
+    set_: SetOpt = None,
+    quick: Annotated[bool, typer.Option("--quick", help="2 epochs x 30 runs")] = False,
+    workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
+    dask_local: DaskLocalOpt = None,
+) -> None:
+    """The paper's experiment (10 epochs x 300 runs) beside the peers; writes a report."""
+    def body():
+        from rrtcolearn.experiment.runner import QUICK, run_experiment
+
+        settings = ExecutionSettings.from_options(workers, scheduler, dask_local)
+        overrides = [f"experiment.{k}={v!r}" for k, v in QUICK.items()] if quick else []
+        cfg = _config(config, seed, overrides + list(set_ or []))
+        exp_dir = out if out is not None else Path("runs") / f"{cfg.name}-experiment"
+        with _progress() as bar:
+            task = bar.add_task("offline: generate, clean, fit", total=None)
+
+            def progress(what: str, done: int, total: int) -> None:
+                if total:
+                    bar.update(task, description=what, completed=done, total=total)
+                else:
+                    bar.update(task, description=f"offline: {what}")
+
+            summary = run_experiment(exp_dir, cfg, settings=settings, progress=progress)
+        main = summary["planners"].get(summary["main_problem"], {})
+        figures = {"experiment_dir": str(exp_dir), "report": str(exp_dir / "report.md")}
+        for name, st in main.items():
+            figures[f"{name} success / median ms"] = (
+                f"{st['success_rate']:.2f} / {1e3 * (st['time_median'] or 0):.1f}")
+        if summary["skipped_planners"]:
+            figures["skipped"] = ", ".join(summary["skipped_planners"])
+        _print_summary("experiment", figures)
+    _guard(body)
+
+
+@app.command()
 def inspect(run_dir: Annotated[Path, typer.Argument(help="run directory")]) -> None:
     """Size and content digest (SHA-256) of every artefact of a run directory.
 

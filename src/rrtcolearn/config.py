@@ -112,6 +112,43 @@ class PlanConfig(_Section):
     obstacles: list[ObstacleConfig] = Field(default_factory=list)
 
 
+class ProblemSpec(_Section):
+    """One planning problem of the experiment: a torque limit, time weight and tolerance."""
+
+    name: str
+    u_max: float | None = Field(None, gt=0)
+    time_weight: float = Field(1.0, gt=0)
+    goal_tolerance: float = Field(0.1, gt=0)
+
+
+def _default_problems() -> list[ProblemSpec]:
+    return [
+        ProblemSpec(name="unbounded-tol0.1"),
+        ProblemSpec(name="u2-tol0.1", u_max=2.0),
+        ProblemSpec(name="u2-tol0.2", u_max=2.0, goal_tolerance=0.2),
+        ProblemSpec(name="u1-tol0.1", u_max=1.0, time_weight=0.1),
+        ProblemSpec(name="u1-tol0.2", u_max=1.0, time_weight=0.1, goal_tolerance=0.2),
+    ]
+
+
+class ExperimentConfig(_Section):
+    """The paper's protocol (epochs x runs) and the peers run beside it."""
+
+    epochs: int = Field(10, ge=1)
+    runs_per_epoch: int = Field(300, ge=1)
+    peer_runs_per_epoch: int | None = Field(
+        None, ge=1, description="runs per epoch for the peers (default: runs_per_epoch)")
+    direct_runs_per_epoch: int = Field(10, ge=0, description="runs of the slow direct method")
+    direct_pairs: int = Field(3000, ge=10, description="collocation pairs per direct dataset")
+    planners: list[str] = Field(default_factory=lambda: [
+        "rrtcolearn", "random-rrt", "ompl-RRT", "ompl-KPIECE1", "ompl-EST", "direct"])
+    problems: list[ProblemSpec] = Field(default_factory=_default_problems)
+    time_limit: float = Field(10.0, gt=0)
+    runs_per_task: int = Field(10, ge=1, description="planning runs per parallel task")
+    d_grid: list[float] = Field(default_factory=lambda: [0.01, 0.02, 0.05, 0.1, 0.2])
+    held_out_simulations: int = Field(2000, ge=10)
+
+
 class Config(_Section):
     name: str = Field("pendulum-swingup", pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
     seed: int = Field(0, ge=0)
@@ -120,6 +157,7 @@ class Config(_Section):
     clean: CleanConfig = Field(default_factory=CleanConfig)
     learn: LearnConfig = Field(default_factory=LearnConfig)
     plan: PlanConfig = Field(default_factory=PlanConfig)
+    experiment: ExperimentConfig = Field(default_factory=ExperimentConfig)
 
 
 def _known_keys(model: type[BaseModel], loc: tuple) -> list[str]:

@@ -1,0 +1,301 @@
+"""Result files, figures and ``report.md`` of an experiment."""
+
+from __future__ import annotations
+
+import datetime
+from pathlib import Path
+
+import numpy as np
+
+from rrtcolearn import pipeline
+from rrtcolearn.config import Config
+from rrtcolearn.data.clean import clean_data
+from rrtcolearn.data.generate import generate_data
+from rrtcolearn.data.store import atomic_write_text, load_dataset, write_json
+from rrtcolearn.evaluate import held_out_errors
+from rrtcolearn.experiment.ompl_format import LogExperiment, write_database, write_log
+from rrtcolearn.experiment.runner import (
+    GOAL,
+    ROW_FIELDS,
+    START,
+    dataset_name,
+    epoch_config,
+    write_csv,
+)
+
+PAPER = {"plan_time_s_median": 2.36, "nodes_median": 84, "nodes_std": 180,
+         "steer_mse_median": 0.11, "offline_s_per_epoch": 25 * 60}
+
+
+def _stats(rows: list[dict]) -> dict:
+    solved = [r for r in rows if r.get("solved")]
+    t = np.array([r["time"] for r in rows if r.get("time") is not None
+                  and np.isfinite(r["time"])])
+
+    def med(key, src=solved):
+        v = [r[key] for r in src if r.get(key) is not None]
+        return float(np.median(v)) if v else None
+
+    return {
+        "runs": len(rows),
+        "success_rate": len(solved) / len(rows) if rows else None,
+        "time_median": float(np.median(t)) if t.size else None,
+        "time_p90": float(np.quantile(t, 0.9)) if t.size else None,
+        "nodes_median": med("nodes", rows),
+        "nodes_std": float(np.std([r["nodes"] for r in rows])) if rows else None,
+        "path_cost_median": med("path_cost"),
+        "path_duration_median": med("path_duration"),
+        "max_abs_u": max((r["max_abs_u"] for r in solved), default=None),
+    }
+
+
+def d_grid_search(exp_dir: Path, config: Config) -> list[dict]:
+    """Fig. 4's message on real data: clean epoch 0's data with each d, fit, and measure the
+    held-out cost and steering errors (paper Section 4: the grid search that picked d)."""
+    pr = config.experiment.problems[0]
+    cfg = epoch_config(config, pr, 0)
+    run_dir = exp_dir / "epoch-00" / dataset_name(pr)
+    raw, _ = load_dataset(run_dir / pipeline.DATASET_FILE)
+    system = pipeline.build_system(cfg)
+    held, _ = generate_data(system, cfg.seed + 1, config.experiment.held_out_simulations,
+                            time_weight=pr.time_weight, u_max=pr.u_max)
+    rows = []
+    for d in config.experiment.d_grid:
+        cleaned, _ = clean_data(raw, d=d, k_max=cfg.clean.k_max, seed=0)
+        functions = pipeline.fit_functions(system, cleaned, cfg)
+        err = held_out_errors(system, functions, held, n_queries=1000,
+                              time_weight=pr.time_weight)
+        rows.append({"d": d, "kept_points": len(cleaned),
+                     "cost_rel_error_median": float(np.median(err.cost_rel_error)),
+                     "steer_mse_median": float(np.median(err.steer_mse)),
+                     "accepted_fraction": err.accepted_fraction})
+    # the choice: the smallest sum of the two errors, each relative to its best value
+    c = np.array([r["cost_rel_error_median"] for r in rows])
+    s = np.array([r["steer_mse_median"] for r in rows])
+    score = c / c.min() + s / s.min()
+    for r, sc in zip(rows, score, strict=True):
+        r["score"] = float(sc)
+        r["chosen"] = bool(sc == score.min())
+    return rows
+
+
+def _figures(exp_dir: Path, config: Config, rows: list[dict], grid: list[dict]) -> dict:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rrtcolearn.plotting import plot_tree, save_figure
+
+    files = {}
+    main = config.experiment.problems[0]
+    ours = [r for r in rows if r["planner"] == "rrtcolearn" and r["problem"] == main.name]
+    if ours:
+        # the tree of a typical run: epoch 0's run with the median number of nodes
+        epoch0 = sorted((r for r in ours if r["epoch"] == 0), key=lambda r: r["nodes"])
+        typical = epoch0[len(epoch0) // 2]
+        model = pipeline.load_model(exp_dir / "epoch-00" / dataset_name(main))
+        plan = pipeline.plan(model, START, GOAL, main.goal_tolerance, typical["seed"],
+                             time_limit=config.experiment.time_limit, u_max=main.u_max,
+                             obstacles=[])
+        fig, ax = plt.subplots(figsize=(6.4, 4.8))
+        plot_tree(ax, plan)
+        save_figure(fig, exp_dir / "tree.png")
+        files["tree"] = "tree.png"
+        fig, ax = plt.subplots(figsize=(6.4, 3.6))
+        epochs = sorted({r["epoch"] for r in ours})
+        ax.boxplot([[r["time"] * 1e3 for r in ours if r["epoch"] == e] for e in epochs],
+                   tick_labels=[str(e) for e in epochs])
+        ax.set_xlabel("epoch")
+        ax.set_ylabel("planning CPU time [ms]")
+        ax.set_yscale("log")
+        ax.set_title(f"RRT-CoLearn planning time per epoch ({main.name})")
+        save_figure(fig, exp_dir / "times_per_epoch.png")
+        files["times"] = "times_per_epoch.png"
+    if grid:
+        fig, ax1 = plt.subplots(figsize=(6.4, 3.6))
+        d = [r["d"] for r in grid]
+        ax1.plot(d, [r["cost_rel_error_median"] for r in grid], "o-", color="tab:blue",
+                 label="cost-to-go relative error")
+        ax1.set_xscale("log")
+        ax1.set_xlabel("cleaning radius d")
+        ax1.set_ylabel("median relative error of J", color="tab:blue")
+        ax2 = ax1.twinx()
+        ax2.plot(d, [r["steer_mse_median"] for r in grid], "s--", color="tab:red",
+                 label="steering MSE")
+        ax2.set_ylabel("median steering MSE", color="tab:red")
+        best = next(r for r in grid if r["chosen"])
+        ax1.axvline(best["d"], color="0.5", lw=1)
+        ax1.set_title(f"grid search over d: chosen d = {best['d']:g}")
+        save_figure(fig, exp_dir / "d_grid.png")
+        files["d_grid"] = "d_grid.png"
+    return files
+
+
+def _fmt(v, scale: float = 1.0, digits: int = 3) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v * scale:.{digits}g}"
+    return str(v)
+
+
+def write_outputs(exp_dir: Path, config: Config, rows: list[dict], offline: list[dict],
+                  skipped: dict[str, str]) -> dict:
+    date = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M:%S")
+    write_csv(exp_dir / "runs.csv", rows, ROW_FIELDS)
+    off_fields = ["epoch", "dataset", "method", "simulations", "raw_points", "kept_points",
+                  "generate_cpu_s", "clean_cpu_s", "fit_cpu_s", "offline_cpu_s",
+                  "cpu_s_per_solve"]
+    write_csv(exp_dir / "offline.csv", offline, off_fields)
+    experiments = []
+    for pr in config.experiment.problems:
+        planners: dict[str, list[dict]] = {}
+        for r in rows:
+            if r["problem"] == pr.name:
+                planners.setdefault(r["planner"], []).append(r)
+        setup = (f"pendulum swing-up from {START} to {GOAL}, goal tolerance "
+                 f"{pr.goal_tolerance}, u_max {pr.u_max}, time weight {pr.time_weight}")
+        experiments.append(LogExperiment(
+            name=f"pendulum-{pr.name}", time_limit=config.experiment.time_limit,
+            total_time=float(sum(r.get("wall_s") or 0.0 for rs in planners.values()
+                                 for r in rs)),
+            seed=config.seed, setup=setup, planners=planners,
+            properties={"u_max": ("REAL", "nan" if pr.u_max is None else str(pr.u_max)),
+                        "goal_tolerance": ("REAL", str(pr.goal_tolerance)),
+                        "time_weight": ("REAL", str(pr.time_weight))}))
+    for exp in experiments:
+        write_log(exp_dir / "ompl" / f"{exp.name}.log", [exp], date)
+    write_database(exp_dir / "benchmark.db", experiments, date)
+    grid = d_grid_search(exp_dir, config) if config.experiment.d_grid else []
+    write_csv(exp_dir / "d_grid.csv", grid, ["d", "kept_points", "cost_rel_error_median",
+                                             "steer_mse_median", "accepted_fraction", "score",
+                                             "chosen"])
+    figures = _figures(exp_dir, config, rows, grid)
+    summary = _summary(config, rows, offline, grid, skipped)
+    write_json(exp_dir / "summary.json", summary)
+    atomic_write_text(exp_dir / "report.md", _report(config, summary, figures))
+    return summary
+
+
+def _summary(config: Config, rows, offline, grid, skipped) -> dict:
+    table = {}
+    for pr in config.experiment.problems:
+        for planner in config.experiment.planners:
+            sel = [r for r in rows if r["problem"] == pr.name and r["planner"] == planner]
+            if sel:
+                table.setdefault(pr.name, {})[planner] = _stats(sel)
+    indirect = [o for o in offline if o["method"] == "indirect"]
+    main = config.experiment.problems[0].name
+    per_epoch = {}
+    for o in indirect:
+        if o["dataset"] == dataset_name(config.experiment.problems[0]):
+            per_epoch[o["epoch"]] = o["offline_cpu_s"]
+    return {
+        "epochs": config.experiment.epochs,
+        "runs_per_epoch": config.experiment.runs_per_epoch,
+        "main_problem": main,
+        "offline_cpu_s_per_epoch_median": float(np.median(list(per_epoch.values())))
+        if per_epoch else None,
+        "offline": offline,
+        "planners": table,
+        "d_grid": grid,
+        "skipped_planners": skipped,
+    }
+
+
+def _report(config: Config, summary: dict, figures: dict) -> str:
+    main = summary["main_problem"]
+    ours = summary["planners"].get(main, {}).get("rrtcolearn", {})
+    lines = ["# RRT-CoLearn experiment report", "",
+             f"{summary['epochs']} epochs x {summary['runs_per_epoch']} runs per epoch; "
+             "each epoch has its own freshly generated and cleaned datasets. Times are CPU "
+             "seconds of the planning process (process or thread CPU time), not wall time.", "",
+             "## Against the paper (pendulum swing-up, unbounded torque, tolerance "
+             f"{config.experiment.problems[0].goal_tolerance})", "",
+             "| figure | paper | measured | ratio paper / measured |",
+             "| --- | ---: | ---: | ---: |"]
+
+    def ratio(paper, ours_v):
+        return f"{paper / ours_v:.3g}x" if ours_v else "-"
+
+    t = ours.get("time_median")
+    lines.append(f"| median planning time | 2.36 s | {_fmt(t, 1e3)} ms | "
+                 f"{ratio(PAPER['plan_time_s_median'], t)} |")
+    lines.append(f"| median nodes | 84 | {_fmt(ours.get('nodes_median'))} | "
+                 f"{ratio(84, ours.get('nodes_median'))} |")
+    lines.append(f"| std of nodes | 180 | {_fmt(ours.get('nodes_std'))} | "
+                 f"{ratio(180, ours.get('nodes_std'))} |")
+    grid = summary["d_grid"]
+    chosen = next((g for g in grid if g["chosen"]), None)
+    at_paper_d = next((g for g in grid if abs(g["d"] - config.clean.d) < 1e-12), None)
+    mse = at_paper_d["steer_mse_median"] if at_paper_d else None
+    lines.append(f"| median steering MSE (d = {config.clean.d:g}) | 0.11 | {_fmt(mse)} | "
+                 f"{ratio(0.11, mse)} |")
+    off = summary["offline_cpu_s_per_epoch_median"]
+    lines.append(f"| offline time per epoch | about 25 min | {_fmt(off)} s | "
+                 f"{ratio(PAPER['offline_s_per_epoch'], off)} |")
+    lines += ["", f"Success rate: {_fmt(ours.get('success_rate'))}. The paper's hardware was a "
+              "2012 laptop CPU; ratios mix algorithmic and hardware differences.", ""]
+    for pr in config.experiment.problems:
+        planners = summary["planners"].get(pr.name, {})
+        if not planners:
+            continue
+        lines += [f"## {pr.name}: u_max = {pr.u_max}, w = {pr.time_weight:g}, tolerance "
+                  f"{pr.goal_tolerance:g}", "",
+                  "| planner | runs | success | CPU median | CPU p90 | nodes | path cost | "
+                  "duration | max abs u | time vs RRT-CoLearn | cost vs RRT-CoLearn | "
+                  "nodes vs RRT-CoLearn |",
+                  "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
+                  "| ---: |"]
+        base = planners.get("rrtcolearn", {})
+        for name, st in planners.items():
+            def rel(key, st=st, base=base):
+                a, b = st.get(key), base.get(key)
+                return f"{a / b:.3g}x" if a and b else "-"
+            lines.append(
+                f"| {name} | {st['runs']} | {_fmt(st['success_rate'])} | "
+                f"{_fmt(st['time_median'], 1e3)} ms | {_fmt(st['time_p90'], 1e3)} ms | "
+                f"{_fmt(st['nodes_median'])} | {_fmt(st['path_cost_median'])} | "
+                f"{_fmt(st['path_duration_median'])} s | {_fmt(st['max_abs_u'])} | "
+                f"{rel('time_median')} | {rel('path_cost_median')} | {rel('nodes_median')} |")
+        lines.append("")
+    if summary["skipped_planners"]:
+        lines += ["Planners not run here: " + "; ".join(
+            f"{k} ({v})" for k, v in summary["skipped_planners"].items()), ""]
+    direct = [o for o in summary["offline"] if o["method"] == "direct"]
+    indirect = [o for o in summary["offline"] if o["method"] == "indirect"]
+    if direct and indirect:
+        d_solve = np.median([o["cpu_s_per_solve"] for o in direct if o.get("cpu_s_per_solve")])
+        d_pt = np.median([o["offline_cpu_s"] / max(o["kept_points"], 1) for o in direct])
+        i_sim = np.median([o["generate_cpu_s"] / o["simulations"] for o in indirect])
+        i_pt = np.median([o["offline_cpu_s"] / max(o["raw_points"], 1) for o in indirect])
+        lines += ["## Offline cost: direct collocation against indirect rollouts", "",
+                  "| | per trajectory | per data point |", "| --- | ---: | ---: |",
+                  f"| direct (CasADi + IPOPT) | {d_solve * 1e3:.3g} ms | {d_pt * 1e3:.3g} ms |",
+                  f"| indirect (this package) | {i_sim * 1e6:.3g} us | {i_pt * 1e6:.3g} us |",
+                  f"| ratio | {d_solve / i_sim:.3g}x | {d_pt / i_pt:.3g}x |", ""]
+    if grid:
+        lines += ["## The cleaning radius d (paper Section 4, Fig. 4)", "",
+                  "Epoch 0's raw data cleaned with each d, learners fitted, and errors measured "
+                  "on 1000 held-out queries from newly generated data:", "",
+                  "| d | kept points | J relative error | steering MSE | held-out accepted |",
+                  "| ---: | ---: | ---: | ---: | ---: |"]
+        for g in grid:
+            mark = " (chosen)" if g["chosen"] else ""
+            lines.append(f"| {g['d']:g}{mark} | {g['kept_points']} | "
+                         f"{g['cost_rel_error_median']:.3g} | {g['steer_mse_median']:.3g} | "
+                         f"{g['accepted_fraction']:.3g} |")
+        lines += ["", f"Chosen by the smallest sum of both errors relative to their best: "
+                  f"d = {chosen['d']:g} (the paper's choice: 0.05).", ""]
+    for key, title in (("tree", "The tree of a typical run (paper Fig. 2)"),
+                       ("times", "Planning time per epoch (paper Fig. 3)"),
+                       ("d_grid", "Grid search over d (paper Fig. 4)")):
+        if key in figures:
+            lines += [f"## {title}", "", f"![{title}]({figures[key]})", ""]
+    lines += ["Files: runs.csv (one row per run), offline.csv, d_grid.csv, ompl/*.log (OMPL "
+              "benchmark logs), benchmark.db (OMPL's SQLite schema; Planner Arena opens it), "
+              "summary.json.", ""]
+    return "\n".join(lines)
+
+
