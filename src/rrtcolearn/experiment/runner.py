@@ -281,6 +281,24 @@ def offline_phase(exp_dir: Path, config: Config, planners: list[str],
     return [row for rows in results for row in rows]
 
 
+def _direct_offline(exp_dir: Path, cfg: Config, pr: ProblemSpec, epoch: int) -> dict:
+    import time
+
+    from rrtcolearn.baselines.direct import generate_direct_dataset, save_direct_dataset
+
+    path = exp_dir / f"epoch-{epoch:02d}" / f"direct_{dataset_name(pr)}.npz"
+    t0 = time.process_time()
+    data, stats = generate_direct_dataset(cfg.experiment.direct_pairs, cfg.seed,
+                                          time_weight=pr.time_weight, u_max=pr.u_max)
+    cpu = time.process_time() - t0
+    save_direct_dataset(path, data, stats)
+    return {"epoch": epoch, "dataset": dataset_name(pr), "method": "direct",
+            "raw_points": int(stats.get("solved", 0)), "kept_points": int(stats.get("solved", 0)),
+            "generate_cpu_s": cpu, "clean_cpu_s": 0.0, "fit_cpu_s": 0.0, "offline_cpu_s": cpu,
+            "simulations": cfg.experiment.direct_pairs,
+            "cpu_s_per_solve": stats.get("cpu_s_per_solve")}
+
+
 def write_csv(path: Path, rows: list[dict], fields: list[str]) -> None:
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=fields, extrasaction="ignore")
