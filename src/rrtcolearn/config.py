@@ -144,6 +144,9 @@ class ExperimentConfig(_Section):
         "rrtcolearn", "random-rrt", "ompl-RRT", "ompl-KPIECE1", "ompl-EST", "direct"])
     problems: list[ProblemSpec] = Field(default_factory=_default_problems)
     time_limit: float = Field(10.0, gt=0)
+    max_iterations: int | None = Field(
+        None, ge=1, description="also stop after this many iterations (RRT-CoLearn and the "
+        "random-control RRT): a limit that does not depend on the machine's load")
     runs_per_task: int = Field(10, ge=1, description="planning runs per parallel task")
     d_grid: list[float] = Field(default_factory=lambda: [0.01, 0.02, 0.05, 0.1, 0.2])
     held_out_simulations: int = Field(2000, ge=10)

@@ -90,7 +90,7 @@ def _rrtcolearn_row(task: RunTask, seed: int) -> dict:
     model = _model(Path(task.exp_dir) / f"epoch-{task.epoch:02d}" / dataset_name(pr))
     plan = pipeline.plan(model, START, GOAL, pr.goal_tolerance, seed,
                          time_limit=task.config.experiment.time_limit, u_max=pr.u_max,
-                         obstacles=[])
+                         max_iterations=task.config.experiment.max_iterations, obstacles=[])
     check = resimulate_plan(model, plan)
     return {"solved": plan.solved and check["reaches_goal"], "status": plan.status,
             "time": plan.planning_cpu_s, "wall_s": plan.planning_time_s,
@@ -127,7 +127,8 @@ def _baseline_row(task: RunTask, seed: int) -> dict:
         from rrtcolearn.baselines.random_rrt import solve_random_rrt
 
         problem = PlanningProblem.create(system, START, GOAL, pr.goal_tolerance, u_max=pr.u_max)
-        res = solve_random_rrt(problem, seed=seed, time_limit=limit)
+        res = solve_random_rrt(problem, seed=seed, time_limit=limit,
+                               max_iterations=task.config.experiment.max_iterations)
     elif task.planner.startswith("ompl-"):
         from rrtcolearn.baselines.ompl_planners import run_ompl_isolated
 
