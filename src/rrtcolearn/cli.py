@@ -23,6 +23,7 @@ from rrtcolearn import __version__, pipeline
 from rrtcolearn.config import Config, add_obstacles, load_config, read_toml
 from rrtcolearn.errors import ConfigError, RRTCoLearnError
 from rrtcolearn.parallel import ExecutionSettings
+from rrtcolearn.planning.problem import PlanningProblem
 
 app = typer.Typer(
     add_completion=False,
@@ -109,7 +110,8 @@ def _do_generate(cfg: Config, run_dir: Path, settings=None) -> dict:
                                          progress=lambda k: bar.advance(task, k),
                                          settings=settings)
     return {"simulations": stats.simulations, "invalid_costates": stats.invalid_costates,
-            "raw_points": stats.points, "resumed_chunks": stats.resumed_chunks,
+            "raw_points": stats.points, "nonfinite_simulations": stats.nonfinite_simulations,
+            "resumed_chunks": stats.resumed_chunks,
             "generate_cpu_s": round(cpu, 3)}
 
 
@@ -242,19 +244,27 @@ def plan(
             if value is not None:
                 overrides.append(f"plan.{key}={value!r}" if not isinstance(value, list)
                                  else f"plan.{key}=[{', '.join(map(repr, value))}]")
-        fitted = pipeline.load_model(run_dir)
-        # the model's own configuration is the base; only its plan section may change here
+        # validate everything before the model is loaded: the query, the config, the files
+        _, model_cfg, system = pipeline.read_model_info(run_dir)
         if seed is not None and seed < 0:
             raise ConfigError("--seed must be a non-negative integer")
         if u_max is not None:
             overrides.append(f"system.u_max={u_max!r}")
+        # the model's own configuration is the base; only its plan section may change here
         cfg = load_config(config, overrides, base={
-            "plan": fitted.config.plan.model_dump(),
-            "system": fitted.config.system.model_dump(exclude_none=True)})
+            "plan": model_cfg.plan.model_dump(),
+            "system": model_cfg.system.model_dump(exclude_none=True)})
         cfg = add_obstacles(cfg, list(obstacle or []))
+        PlanningProblem.create(system, cfg.plan.start, cfg.plan.goal, cfg.plan.goal_tolerance,
+                               u_max=cfg.system.u_max,
+                               obstacles=[o.model_dump() for o in cfg.plan.obstacles])
+        out_path = out if out is not None else run_dir / "plan.json"
+        if out_path.is_dir():
+            raise ConfigError(f"--out {out_path} is a directory; give a file name like "
+                              "plan.json")
+        fitted = pipeline.load_model(run_dir)
         p_cfg = fitted.config.model_copy(update={"plan": cfg.plan, "system": cfg.system})
         plan_seed = seed if seed is not None else fitted.config.seed
-        out_path = out if out is not None else run_dir / "plan.json"
         p = pipeline.plan(fitted, cfg.plan.start, cfg.plan.goal, cfg.plan.goal_tolerance,
                           plan_seed, config=p_cfg, time_limit=cfg.plan.time_limit,
                           max_iterations=cfg.plan.max_iterations)

@@ -51,7 +51,9 @@ class GenerateConfig(_Section):
     max_cost: float = Field(2.0, gt=0, description="stop a simulation when its cost exceeds this")
     max_state_distance: float = Field(1.5, gt=0,
                                       description="... or when |x(t) - x0| exceeds this")
-    chunk_size: int = Field(2000, ge=1, description="simulations per seeded chunk")
+    max_duration: float = Field(20.0, gt=0, le=1000.0,
+                                description="longest segment (s); bounds memory and time")
+    chunk_size: int = Field(2000, ge=1, le=100_000, description="simulations per seeded chunk")
     state_low: list[float] | None = Field(None, description="override the start-state box")
     state_high: list[float] | None = None
     param_low: list[float] | None = Field(None, description="override the costate-parameter range")

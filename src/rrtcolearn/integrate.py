@@ -60,6 +60,7 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max):
     states = _np.empty((n_sims, max_steps, n))
     costs = _np.empty((n_sims, max_steps))
     lengths = _np.zeros(n_sims, dtype=_np.int64)
+    nonfinite = _np.zeros(n_sims, dtype=_np.bool_)
     k1 = _np.empty(d)
     k2 = _np.empty(d)
     k3 = _np.empty(d)
@@ -81,7 +82,10 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max):
             for j in range(d):
                 if not _math.isfinite(znew[j]):
                     ok = False
-            if not ok or znew[d - 1] > max_cost or dist2 > max_dist * max_dist:
+            if not ok:
+                nonfinite[i] = True
+                break
+            if znew[d - 1] > max_cost or dist2 > max_dist * max_dist:
                 break
             if u_max > 0.0 and input_max_abs(znew) > u_max:
                 break
@@ -90,7 +94,7 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max):
             costs[i, s] = znew[d - 1]
             lengths[i] = s + 1
             z[:] = znew
-    return states, costs, lengths
+    return states, costs, lengths, nonfinite
 '''
 
 
@@ -118,15 +122,15 @@ def rollout_batch(
     max_dist: float,
     n: int,
     u_max: float | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Integrate rows of ``z0`` (S, 2n+1) until each stops.
 
     A row stops before the first step whose cost exceeds ``max_cost``, whose state is farther
     than ``max_dist`` from its start, that is not finite, or (when ``u_max`` is given) whose
     optimal input exceeds ``u_max`` in magnitude; a row whose input at the start already
-    exceeds it yields no points. Returns states
-    (S, max_steps, n), costs (S, max_steps) and lengths (S,): row i's first ``lengths[i]``
-    steps are valid data points.
+    exceeds it yields no points. Returns states (S, max_steps, n), costs (S, max_steps),
+    lengths (S,) — row i's first ``lengths[i]`` steps are valid data points — and a (S,)
+    mask of the rows that stopped because the integration overflowed or produced NaN.
     """
     return system.rollout_batch_jit(
         np.ascontiguousarray(z0, dtype=np.float64), float(w), float(dt), int(max_steps),

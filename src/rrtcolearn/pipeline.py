@@ -134,7 +134,7 @@ def generate(config: Config, run_dir: str | Path,
         system, seed_stream(config.seed, "generate"), g.n_simulations,
         time_weight=config.system.time_weight, dt=g.dt, max_cost=g.max_cost,
         max_state_distance=g.max_state_distance, chunk_size=g.chunk_size,
-        u_max=config.system.u_max)
+        u_max=config.system.u_max, max_duration=g.max_duration)
     shards = ShardStore(run_dir / "shards" / "generate", key, len(tasks))
     parts: list = [shards.load(t.chunk, system.name) for t in tasks]
     todo = [t for t, part in zip(tasks, parts, strict=True) if part is None]
@@ -229,7 +229,7 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
     config = _with_sections(config, meta, ("system", "generate", "clean"))
     functions = fit_functions(system, data, config)
     save_config(config, run_dir)
-    write_json(run_dir / MODEL_FILE, {
+    write_checked_json(run_dir / MODEL_FILE, {
         "format": MODEL_FORMAT,
         "schema_version": MODEL_SCHEMA,
         "package_version": __version__,
@@ -244,22 +244,48 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
                        config.generate.max_state_distance)
 
 
-def load_model(run_dir: str | Path) -> FittedModel:
-    """Rebuild a fitted model from a run directory, checking that its files belong together."""
+def json_checksum(content: dict) -> str:
+    """SHA-256 of a JSON document's canonical form, without its own ``sha256`` field."""
+    body = {k: v for k, v in content.items() if k != "sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":"))
+                          .encode()).hexdigest()
+
+
+def write_checked_json(path: str | Path, content: dict) -> None:
+    """Write a JSON artefact with its checksum, atomically."""
+    write_json(path, {**content, "sha256": json_checksum(content)})
+
+
+def read_checked_json(path: str | Path, fmt: str, schema: int, what: str) -> dict:
+    """Read a JSON artefact, refusing another format, schema or a failed checksum."""
+    info = read_json(path, what)
+    if not isinstance(info, dict) or info.get("format") != fmt:
+        raise ArtefactError(f"{path} is not an rrtcolearn {what}")
+    if info.get("schema_version") != schema:
+        raise ArtefactError(f"{path} has schema version {info.get('schema_version')}, "
+                            f"expected {schema}")
+    if info.get("sha256") != json_checksum(info):
+        raise ArtefactError(f"{path} fails its checksum: the file was modified or damaged")
+    return info
+
+
+def read_model_info(run_dir: str | Path) -> tuple[dict, Config, System]:
+    """The checked ``model.json`` of a run directory, its configuration and its system."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ArtefactError(f"run directory not found: {run_dir}")
-    info = read_json(run_dir / MODEL_FILE, "model file")
-    if not isinstance(info, dict) or info.get("format") != MODEL_FORMAT:
-        raise ArtefactError(f"{run_dir / MODEL_FILE} is not an rrtcolearn model file")
-    if info.get("schema_version") != MODEL_SCHEMA:
-        raise ArtefactError(f"{run_dir / MODEL_FILE} has schema version "
-                            f"{info.get('schema_version')}, expected {MODEL_SCHEMA}")
+    info = read_checked_json(run_dir / MODEL_FILE, MODEL_FORMAT, MODEL_SCHEMA, "model file")
     try:
         config = Config.model_validate(info["config"])
     except Exception:
         raise ArtefactError(f"{run_dir / MODEL_FILE} holds an invalid configuration") from None
-    system = build_system(config)
+    return info, config, build_system(config)
+
+
+def load_model(run_dir: str | Path) -> FittedModel:
+    """Rebuild a fitted model from a run directory, checking that its files belong together."""
+    run_dir = Path(run_dir)
+    info, config, system = read_model_info(run_dir)
     data, meta = load_dataset(run_dir / CLEANED_FILE, system.name)
     if meta["sha256"] != info.get("cleaned_sha256"):
         raise ArtefactError(f"{run_dir / CLEANED_FILE} is not the dataset the model was "
@@ -289,12 +315,25 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
     problem = PlanningProblem.create(model.system, start, goal, goal_tolerance, u_max=u_max,
                                      obstacles=obstacles, is_valid=is_valid)
     planner = RRTCoLearn(problem, model.functions, model.planner_settings(config))
-    return planner.solve(TerminationCondition(time_limit, max_iterations), seed)
+    result = planner.solve(TerminationCondition(time_limit, max_iterations), seed)
+    result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None
+    result.extra["config"] = cfg.model_dump(mode="json")
+    return result
+
+
+PLAN_FORMAT = "rrtcolearn.plan"
+PLAN_SCHEMA = 1
 
 
 def write_plan(p: Plan, path: str | Path) -> None:
-    """Write the plan file (JSON, see README "The plan file")."""
-    write_json(path, p.to_dict())
+    """Write the plan file (JSON, see README "The plan file") with its checksum."""
+    write_checked_json(path, {"format": PLAN_FORMAT, "schema_version": PLAN_SCHEMA,
+                              "package_version": __version__, **p.to_dict()})
+
+
+def read_plan(path: str | Path) -> dict:
+    """A checked plan file."""
+    return read_checked_json(path, PLAN_FORMAT, PLAN_SCHEMA, "plan file")
 
 
 def _cpu_seconds() -> float:

@@ -24,6 +24,7 @@ class GenerationStats:
     invalid_costates: int
     empty_simulations: int
     points: int
+    nonfinite_simulations: int = 0  # stopped by overflow or NaN; their finite prefix is kept
     resumed_chunks: int = 0  # chunks loaded from shards of an interrupted run
 
 
@@ -47,6 +48,7 @@ def simulate_chunk(
     max_cost: float,
     max_state_distance: float,
     u_max: float | None = None,
+    max_duration: float = 20.0,
 ) -> tuple[Dataset, GenerationStats]:
     """Generate the data points of ``n_simulations`` simulations from one seed."""
     rng = np.random.default_rng(seed)
@@ -55,9 +57,9 @@ def simulate_chunk(
     sim_index = first_index + np.flatnonzero(valid)
     x0, p, lam = x0[valid], p[valid], lam[valid]
     z0 = np.hstack([x0, lam, np.zeros((len(x0), 1))])
-    # cost >= w*t bounds every simulation's duration
-    max_steps = int(np.ceil(max_cost / (time_weight * dt))) + 1 if time_weight > 0 else 10_000
-    states, costs, lengths = rollout_batch(
+    # cost >= w*t bounds every simulation's duration; max_duration caps it regardless
+    max_steps = int(min(np.ceil(max_cost / (time_weight * dt)) + 1, np.ceil(max_duration / dt)))
+    states, costs, lengths, nonfinite = rollout_batch(
         system, z0, time_weight, dt, max_steps, max_cost, max_state_distance, n, u_max=u_max,
     )
     mask = np.arange(max_steps)[None, :] < lengths[:, None]
@@ -76,6 +78,7 @@ def simulate_chunk(
         invalid_costates=int(n_simulations - valid.sum()),
         empty_simulations=int((lengths == 0).sum()),
         points=len(data),
+        nonfinite_simulations=int(nonfinite.sum()),
     )
     return data, stats
 
@@ -107,6 +110,7 @@ class GenerationTask:
     max_cost: float
     max_state_distance: float
     u_max: float | None
+    max_duration: float = 20.0
 
 
 def run_generation_task(task: GenerationTask) -> tuple[Dataset, GenerationStats]:
@@ -114,7 +118,7 @@ def run_generation_task(task: GenerationTask) -> tuple[Dataset, GenerationStats]
     return simulate_chunk(
         task.system, task.seed, task.count, task.first, time_weight=task.time_weight,
         dt=task.dt, max_cost=task.max_cost, max_state_distance=task.max_state_distance,
-        u_max=task.u_max)
+        u_max=task.u_max, max_duration=task.max_duration)
 
 
 def generation_tasks(
@@ -128,6 +132,7 @@ def generation_tasks(
     max_state_distance: float = 1.5,
     chunk_size: int = 2000,
     u_max: float | None = None,
+    max_duration: float = 20.0,
 ) -> list[GenerationTask]:
     """Alg. 2 split into chunks; chunk c is seeded by ``SeedSequence(seed).spawn(n)[c]``."""
     if n_simulations < 1 or chunk_size < 1:
@@ -137,7 +142,7 @@ def generation_tasks(
     return [
         GenerationTask(system, c, c * chunk_size,
                        min(chunk_size, n_simulations - c * chunk_size), ss, time_weight, dt,
-                       max_cost, max_state_distance, u_max)
+                       max_cost, max_state_distance, u_max, max_duration)
         for c, ss in enumerate(seeds)
     ]
 
@@ -150,6 +155,7 @@ def merge(parts: list[tuple[Dataset, GenerationStats]]) -> tuple[Dataset, Genera
         invalid_costates=sum(s.invalid_costates for s in stats),
         empty_simulations=sum(s.empty_simulations for s in stats),
         points=sum(s.points for s in stats),
+        nonfinite_simulations=sum(s.nonfinite_simulations for s in stats),
     )
     return concatenate([d for d, _ in parts]), total
 
@@ -165,6 +171,7 @@ def generate_data(
     max_state_distance: float = 1.5,
     chunk_size: int = 2000,
     u_max: float | None = None,
+    max_duration: float = 20.0,
     settings: ExecutionSettings | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> tuple[Dataset, GenerationStats]:
@@ -176,7 +183,7 @@ def generate_data(
     """
     tasks = generation_tasks(system, seed, n_simulations, time_weight=time_weight, dt=dt,
                              max_cost=max_cost, max_state_distance=max_state_distance,
-                             chunk_size=chunk_size, u_max=u_max)
+                             chunk_size=chunk_size, u_max=u_max, max_duration=max_duration)
     parts = map_tasks(run_generation_task, tasks, settings,
                       None if progress is None else lambda i, r: progress(tasks[i].count))
     return merge(parts)
