@@ -142,7 +142,7 @@ def test_damaged_dataset_files(tmp_path_factory, valid_file, data):
     path = tmp_path_factory.mktemp("g") / "d.npz"
     path.write_bytes(bytes(raw))
     try:
-        loaded, meta = load_dataset(path)
+        load_dataset(path)
     except ArtefactError as exc:
         assert "\n" not in str(exc)
         return
