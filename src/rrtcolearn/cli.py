@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 import time
 from pathlib import Path
@@ -55,6 +56,20 @@ def _fail(message: str, code: int) -> None:
     raise typer.Exit(code)
 
 
+_INTERRUPTED = "interrupted; finished files are complete, unfinished ones were not written"
+
+
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """True when a signal landed inside compiled code and surfaced wrapped in another error."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, (Interrupted, KeyboardInterrupt)):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 def _guard(fn):
     """Run a command body; user errors become one line and a non-zero exit, never a traceback."""
     try:
@@ -65,12 +80,15 @@ def _guard(fn):
         if _state["debug"]:
             raise
         _fail(str(exc), exc.exit_code)
-    except KeyboardInterrupt:
-        console.print("interrupted; finished files are complete, unfinished ones were not written")
+    except (Interrupted, KeyboardInterrupt):
+        console.print(_INTERRUPTED)
         raise typer.Exit(130) from None
     except MemoryError:
         _fail("out of memory; reduce generate.n_simulations", 3)
     except Exception as exc:  # an internal error: still one line unless --debug
+        if _caused_by_interrupt(exc):
+            console.print(_INTERRUPTED)
+            raise typer.Exit(130) from None
         if _state["debug"]:
             raise
         _fail(f"internal error: {type(exc).__name__}: {exc} (rerun with --debug for details)", 1)
@@ -356,12 +374,22 @@ def inspect(run_dir: Annotated[Path, typer.Argument(help="run directory")]) -> N
     _guard(body)
 
 
+class Interrupted(BaseException):
+    """SIGINT or SIGTERM: raised instead of KeyboardInterrupt, which click would swallow."""
+
+
+def _interrupt(signum, frame) -> None:
+    raise Interrupted
+
+
 def main() -> None:
     """Console entry point."""
+    signal.signal(signal.SIGINT, _interrupt)
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         app()
-    except KeyboardInterrupt:
-        console.print("interrupted")
+    except (Interrupted, KeyboardInterrupt):
+        console.print(_INTERRUPTED)
         sys.exit(130)
 
 
