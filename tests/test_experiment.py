@@ -20,6 +20,7 @@ TINY = [
     'experiment.problems=[{name="unbounded", goal_tolerance=0.2}, '
     '{name="u2", u_max=2.0, goal_tolerance=0.2}]',
     "experiment.d_grid=[0.05, 0.1]", "experiment.held_out_simulations=200",
+    "experiment.d_grid_plans=2",
 ]
 
 

@@ -151,6 +151,7 @@ class ExperimentConfig(_Section):
         "random-control RRT): a limit that does not depend on the machine's load")
     runs_per_task: int = Field(10, ge=1, description="planning runs per parallel task")
     d_grid: list[float] = Field(default_factory=lambda: [0.01, 0.02, 0.05, 0.1, 0.2])
+    d_grid_plans: int = Field(30, ge=1, description="planning runs per d in the grid search")
     held_out_simulations: int = Field(2000, ge=10)
 
 

@@ -18,6 +18,8 @@ class HeldOutErrors:
 
     steer_mse: np.ndarray  # (Q,) mean over coordinates of the squared error to x1
     cost_rel_error: np.ndarray  # (Q,) |J_hat - J| / J
+    param_error: np.ndarray  # (Q,) error of the costate parameters (circular ones on the circle)
+    duration_error: np.ndarray  # (Q,) |T_hat - T|
     accepted_fraction: float  # share of the sampled held-out queries V accepted
 
 
@@ -47,5 +49,12 @@ def held_out_errors(system: System, functions: LearnedFunctions, held_out: Datas
         traj = rollout(system, np.r_[X[i, :n], lam[0], 0.0], time_weight, dt, steps)
         mse[q] = np.mean((traj[-1, :n] - X[i, n:]) ** 2)
     true_cost = held_out.cost[order][pick]
+    true_params = held_out.params[order][pick]
+    diff = np.abs(steer[pick, :-1] - true_params)
+    period = system.param_high - system.param_low
+    circ = np.asarray(system.param_circular, dtype=bool)
+    diff[:, circ] = np.minimum(diff[:, circ], period[circ] - diff[:, circ])
     return HeldOutErrors(mse, np.abs(cost[pick] - true_cost) / true_cost,
+                         np.linalg.norm(diff, axis=1),
+                         np.abs(steer[pick, -1] - held_out.duration[order][pick]),
                          len(accepted) / len(X))

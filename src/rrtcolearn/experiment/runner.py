@@ -37,7 +37,7 @@ ROW_FIELDS = ["epoch", "seed", "problem", "planner", "solved", "status", "time",
 START = [-math.pi, 0.0]
 GOAL = [0.0, 0.0]
 QUICK = {"epochs": 2, "runs_per_epoch": 30, "direct_runs_per_epoch": 3, "direct_pairs": 400,
-         "d_grid": [0.02, 0.05, 0.1]}
+         "d_grid": [0.02, 0.05, 0.1], "d_grid_plans": 10}
 
 
 def dataset_name(problem: ProblemSpec) -> str:
