@@ -129,7 +129,18 @@ def main() -> None:
             ok = value <= bound if op == "<=" else value >= bound
             line += f"  {op} {bound} ({note}) {'met' if ok else 'NOT met'}"
         print(line)
-    print(json.dumps(result))
+    extra = {}
+    if "--skip-long" not in sys.argv:
+        import parallel_bench
+        import soak
+
+        extra |= parallel_bench.main()
+        extra |= soak.main()
+        for key, value in extra.items():
+            print(f"{key:28s} {value!s:>12s}")
+        print(f"{'gen_speedup_2w target':28s} {'>= 1.7':>12s}  "
+              f"{'met' if extra['gen_speedup_2w'] >= 1.7 else 'NOT met'}")
+    print(json.dumps(result | extra))
 
 
 if __name__ == "__main__":

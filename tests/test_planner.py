@@ -81,3 +81,18 @@ def test_iteration_limit_gives_a_valid_unsolved_plan(paper_model):
 def test_bad_queries_are_refused(paper_model, start, goal, tol, message):
     with pytest.raises(ProblemError, match=message):
         plan(paper_model, start, goal, tol)
+
+
+def test_concurrent_queries_on_one_model_match_sequential(paper_model):
+    """No shared mutable state: threads planning on one model give the sequential plans."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(seed):
+        p = plan(paper_model, [-np.pi, 0], [0, 0], 0.2, seed=seed, time_limit=None,
+                 max_iterations=2000)
+        return p.to_dict()["path"], p.nodes
+
+    sequential = [one(s) for s in range(8)]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        threaded = list(pool.map(one, range(8)))
+    assert threaded == sequential
