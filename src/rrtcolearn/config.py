@@ -112,6 +112,8 @@ class PlanConfig(_Section):
     time_limit: float | None = Field(10.0, gt=0)
     max_iterations: int | None = Field(None, ge=1)
     obstacles: list[ObstacleConfig] = Field(default_factory=list)
+    input_limit: Literal["reject", "cut"] = Field(
+        "reject", description="an edge whose input exceeds u_max is rejected, or cut before it")
 
 
 class ProblemSpec(_Section):

@@ -203,7 +203,8 @@ class FittedModel:
         return PlannerSettings(
             time_weight=self.config.system.time_weight, dt=self.config.generate.dt,
             goal_bias=p.goal_bias, sigma=p.sigma, sigma_goal=p.sigma_goal,
-            decimals=p.decimals, max_duration=self.max_duration, reach=float(reach))
+            decimals=p.decimals, max_duration=self.max_duration, reach=float(reach),
+            input_limit=p.input_limit)
 
 
 def fit_functions(system: System, data: Dataset, config: Config) -> LearnedFunctions:

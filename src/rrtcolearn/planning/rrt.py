@@ -27,6 +27,8 @@ class PlannerSettings:
         query; such nodes are pruned before the neighbour query.
     enforce_bounds : reject edges that leave the state box in a non-angle coordinate (the
         state bounds OMPL planners are given too).
+    input_limit : an edge whose input exceeds the problem's ``u_max`` is rejected
+        ("reject") or cut before its first such state ("cut"; the prefix is feasible).
     """
 
     time_weight: float = 1.0
@@ -39,6 +41,7 @@ class PlannerSettings:
     reach: float = np.inf
     max_resample: int = 10
     enforce_bounds: bool = True
+    input_limit: str = "reject"
 
 
 def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
@@ -157,6 +160,11 @@ class RRTCoLearn:
                 invalid = np.flatnonzero(~prob.validity(path))
                 if invalid.size:
                     end = int(invalid[0])
+            u_all = np.abs(sys.optimal_control(traj[:, :n], traj[:, n : 2 * n])).max(axis=1)
+            if u_max is not None and s.input_limit == "cut":
+                over = np.flatnonzero(u_all[1:] > u_max)
+                if over.size:
+                    end = min(end, int(over[0]))
             gd = path[:end] - prob.goal
             hit = np.flatnonzero(np.einsum("ij,ij->i", gd, gd) <= tol2)
             if hit.size:
@@ -167,8 +175,8 @@ class RRTCoLearn:
                 traj = traj[: end + 1]
                 steps = end
                 params[-1] = steps * s.dt
-            u_abs = float(np.abs(sys.optimal_control(traj[:, :n], traj[:, n : 2 * n])).max())
-            if prob.u_max is not None and u_abs > prob.u_max:
+            u_abs = float(u_all[: steps + 1].max())
+            if u_max is not None and u_abs > u_max:
                 continue
             node = tree.add(traj[-1, :n], parent, lam, params[:-1], steps * s.dt,
                             traj[-1, 2 * n], traj[:, :n], u_abs)
