@@ -9,6 +9,7 @@ finished chunks are written as shards, and where progress is reported.
 
 from __future__ import annotations
 
+import atexit
 import multiprocessing
 import os
 from collections.abc import Callable, Sequence
@@ -85,29 +86,52 @@ def map_tasks(fn: Callable[[Any], Any], tasks: Sequence[Any],
     return results
 
 
+_POOLS: dict[int, ProcessPoolExecutor] = {}
+
+
+def _pool(workers: int) -> ProcessPoolExecutor:
+    """A pool of ``workers`` processes, kept for later calls: starting a worker (an
+    interpreter, numpy, the compiled kernels) costs about a second."""
+    if workers not in _POOLS:
+        # spawn: workers start clean and read the pinned thread counts before numpy loads
+        saved = {v: os.environ.get(v) for v in _THREAD_VARS}
+        pin_threads()
+        try:
+            _POOLS[workers] = ProcessPoolExecutor(
+                max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+        finally:
+            for v, value in saved.items():
+                if value is None:
+                    os.environ.pop(v, None)
+                else:
+                    os.environ[v] = value
+    return _POOLS[workers]
+
+
+def shutdown_pools() -> None:
+    """Stop the kept worker processes."""
+    while _POOLS:
+        _POOLS.popitem()[1].shutdown(wait=True, cancel_futures=True)
+
+
+atexit.register(shutdown_pools)
+
+
 def _map_processes(fn, tasks, workers: int, done) -> None:
-    # spawn: workers start clean and read the pinned thread counts before numpy loads
-    saved = {v: os.environ.get(v) for v in _THREAD_VARS}
-    pin_threads()
+    pool = _pool(workers)
+    pending = {pool.submit(fn, t): i for i, t in enumerate(tasks)}
     try:
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            pending = {pool.submit(fn, t): i for i, t in enumerate(tasks)}
-            try:
-                while pending:
-                    finished, _ = wait(pending, return_when=FIRST_COMPLETED)
-                    for f in finished:
-                        done(pending.pop(f), f.result())
-            except BaseException:
-                for f in pending:
-                    f.cancel()
-                raise
-    finally:
-        for v, value in saved.items():
-            if value is None:
-                os.environ.pop(v, None)
-            else:
-                os.environ[v] = value
+        while pending:
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for f in finished:
+                done(pending.pop(f), f.result())
+    except BaseException:
+        for f in pending:
+            f.cancel()
+        # a pool interrupted mid-task may hold broken workers: start afresh next time
+        _POOLS.pop(workers, None)
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
 
 
 def _existing_client(address: str):

@@ -7,6 +7,7 @@ simulation stops when its cost exceeds ``max_cost`` or its state leaves the ball
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -26,6 +27,7 @@ class GenerationStats:
     points: int
     nonfinite_simulations: int = 0  # stopped by overflow or NaN; their finite prefix is kept
     resumed_chunks: int = 0  # chunks loaded from shards of an interrupted run
+    worker_cpu_s: float = 0.0  # CPU time of the simulations, in whichever process ran them
 
 
 def sample_starts(system: System, rng: np.random.Generator, n: int,
@@ -51,6 +53,7 @@ def simulate_chunk(
     max_duration: float = 20.0,
 ) -> tuple[Dataset, GenerationStats]:
     """Generate the data points of ``n_simulations`` simulations from one seed."""
+    cpu0 = time.process_time()
     rng = np.random.default_rng(seed)
     n = system.n_states
     x0, p, lam, valid = sample_starts(system, rng, n_simulations, time_weight)
@@ -64,23 +67,60 @@ def simulate_chunk(
     )
     mask = np.arange(max_steps)[None, :] < lengths[:, None]
     rows, steps = np.nonzero(mask)
-    data = Dataset(
-        x0=x0[rows],
-        x1=states[rows, steps],
-        cost=costs[rows, steps],
-        params=p[rows],
-        duration=(steps + 1) * dt,
-        costate=lam[rows],
-        simulation=sim_index[rows].astype(np.int64),
-    )
+    chunk = CompactChunk(x0=x0, params=p, costate=lam, simulation=sim_index.astype(np.int64),
+                         point_sim=rows.astype(np.int32), x1=states[rows, steps],
+                         cost=costs[rows, steps], step=(steps + 1).astype(np.int32), dt=dt)
     stats = GenerationStats(
         simulations=n_simulations,
         invalid_costates=int(n_simulations - valid.sum()),
         empty_simulations=int((lengths == 0).sum()),
-        points=len(data),
+        points=len(rows),
         nonfinite_simulations=int(nonfinite.sum()),
+        worker_cpu_s=time.process_time() - cpu0,
     )
-    return data, stats
+    return chunk, stats
+
+
+@dataclass
+class CompactChunk:
+    """A chunk's rows without repeating per-simulation values: what workers send back.
+
+    Per simulation: x0, params, costate, simulation index; per point: the simulation it
+    belongs to (local index), x1, cost and step count. ``expand`` gives the `Dataset`.
+    """
+
+    x0: np.ndarray
+    params: np.ndarray
+    costate: np.ndarray
+    simulation: np.ndarray
+    point_sim: np.ndarray
+    x1: np.ndarray
+    cost: np.ndarray
+    step: np.ndarray
+    dt: float
+
+    def expand(self) -> Dataset:
+        s = self.point_sim
+        return Dataset(x0=np.take(self.x0, s, axis=0), x1=self.x1, cost=self.cost,
+                       params=np.take(self.params, s, axis=0), duration=self.step * self.dt,
+                       costate=np.take(self.costate, s, axis=0),
+                       simulation=np.take(self.simulation, s))
+
+    @classmethod
+    def concatenate(cls, parts: list[CompactChunk]) -> CompactChunk:
+        offsets = np.cumsum([0] + [len(c.simulation) for c in parts[:-1]])
+        return cls(
+            x0=np.concatenate([c.x0 for c in parts]),
+            params=np.concatenate([c.params for c in parts]),
+            costate=np.concatenate([c.costate for c in parts]),
+            simulation=np.concatenate([c.simulation for c in parts]),
+            point_sim=np.concatenate([c.point_sim.astype(np.int64) + o
+                                      for c, o in zip(parts, offsets, strict=True)]),
+            x1=np.concatenate([c.x1 for c in parts]),
+            cost=np.concatenate([c.cost for c in parts]),
+            step=np.concatenate([c.step for c in parts]),
+            dt=parts[0].dt,
+        )
 
 
 def _fresh(seed: int | np.random.SeedSequence) -> np.random.SeedSequence:
@@ -147,17 +187,22 @@ def generation_tasks(
     ]
 
 
-def merge(parts: list[tuple[Dataset, GenerationStats]]) -> tuple[Dataset, GenerationStats]:
+def merge(parts: list[tuple[CompactChunk | Dataset, GenerationStats]]
+          ) -> tuple[Dataset, GenerationStats]:
     """Chunks in chunk order -> one dataset and summed statistics."""
     stats = [st for _, st in parts]
+    chunks = [c for c, _ in parts]
     total = GenerationStats(
         simulations=sum(s.simulations for s in stats),
         invalid_costates=sum(s.invalid_costates for s in stats),
         empty_simulations=sum(s.empty_simulations for s in stats),
         points=sum(s.points for s in stats),
         nonfinite_simulations=sum(s.nonfinite_simulations for s in stats),
+        worker_cpu_s=sum(s.worker_cpu_s for s in stats),
     )
-    return concatenate([d for d, _ in parts]), total
+    if all(isinstance(c, CompactChunk) for c in chunks):
+        return CompactChunk.concatenate(chunks).expand(), total
+    return concatenate([c.expand() if isinstance(c, CompactChunk) else c for c in chunks]), total
 
 
 def generate_data(

@@ -217,6 +217,8 @@ class ShardStore:
 
     def save(self, chunk: int, result, meta: dict) -> None:
         data, stats = result
+        if not isinstance(data, Dataset):
+            data = data.expand()
         save_dataset(self._path(chunk), data, {**meta, "chunk": chunk,
                                                "stats": dataclasses.asdict(stats)})
 
