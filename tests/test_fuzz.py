@@ -235,3 +235,40 @@ def test_plan_command_line(tiny_model, tmp_path_factory, args):
 def test_errors_are_project_errors():
     assert issubclass(ProblemError, RRTCoLearnError)
     assert issubclass(ConfigError, RRTCoLearnError)
+
+
+SAFE = ["--set", "generate.n_simulations=30", "--set", "generate.chunk_size=10",
+        "--set", "generate.max_duration=0.5", "--set", "plan.max_iterations=3",
+        "--set", "clean.k_max=50"]
+
+
+@settings(max_examples=120, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(st.sampled_from(["generate", "clean", "fit", "run", "inspect", "systems"]),
+       st.lists(st.tuples(st.sampled_from(["--seed", "--set", "--config", "--u-max",
+                                           "--workers", "--obstacle", "--bogus"]),
+                          st.one_of(toml_values, st.sampled_from(
+                              ["system.u_max=2", "clean.method='greedy'", "seed=3",
+                               "learn.n_neighbors=1", "/nonexistent.toml", "2", "-5"]))),
+                max_size=3))
+def test_every_command_line(tmp_path_factory, command, args):
+    out = tmp_path_factory.mktemp("c") / "run"
+    argv = [command]
+    if command == "inspect":
+        argv.append(str(out))
+    elif command != "systems":
+        argv += ["--out", str(out)]
+        for flag, value in args:
+            if flag == "--workers" and value not in ("1", "2"):
+                value = "0"  # never start a large pool: 0 is refused, 1 and 2 are fine
+            argv.append(f"{flag}={value}")
+        argv += SAFE if command in ("generate", "run") else []
+    result = CliRunner().invoke(app, argv)
+    assert "Traceback" not in result.output
+    assert result.exit_code in (0, 2), result.output
+    if result.exit_code == 2:
+        assert len(result.output.strip().splitlines()) == 1, result.output
+    elif command in ("generate", "run"):
+        from rrtcolearn.config import read_toml
+
+        check_config_invariants(validate(read_toml(out / "config.toml")))

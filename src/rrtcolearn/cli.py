@@ -19,6 +19,12 @@ from rich.progress import (
     TimeElapsedColumn,
 )
 from rich.table import Table
+from typer.core import TyperGroup
+
+try:  # recent typer versions vendor click; older ones use it directly
+    from typer._click import exceptions as _click_errors
+except ImportError:  # pragma: no cover
+    from click import exceptions as _click_errors
 
 from rrtcolearn import __version__, pipeline
 from rrtcolearn.config import Config, add_obstacles, load_config, read_toml
@@ -26,7 +32,28 @@ from rrtcolearn.errors import ConfigError, RRTCoLearnError
 from rrtcolearn.parallel import ExecutionSettings
 from rrtcolearn.planning.problem import PlanningProblem
 
+
+class _OneLineErrors(TyperGroup):
+    """Usage errors (a malformed option value, an unknown option) as one line, exit 2."""
+
+    def main(self, *args, standalone_mode: bool = True, **kwargs):
+        try:
+            rv = super().main(*args, standalone_mode=False, **kwargs)
+        except _click_errors.NoArgsIsHelpError as exc:
+            print(exc.ctx.get_help() if exc.ctx else str(exc))
+            sys.exit(0)
+        except _click_errors.ClickException as exc:
+            console.print(f"[bold red]error:[/] {exc.format_message()}", highlight=False,
+                          soft_wrap=True)
+            sys.exit(exc.exit_code)
+        except typer.Abort:
+            console.print(_INTERRUPTED)
+            sys.exit(130)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
+
 app = typer.Typer(
+    cls=_OneLineErrors,
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
@@ -170,15 +197,19 @@ def _print_summary(title: str, figures: dict) -> None:
     out_console.print(table)
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        out_console.print(f"rrtcolearn {__version__}")
+        raise typer.Exit(0)
+
+
 @app.callback()
 def _main(
     debug: Annotated[bool, typer.Option("--debug", help="show tracebacks on errors")] = False,
-    version: Annotated[bool, typer.Option("--version", help="print the version")] = False,
+    version: Annotated[bool, typer.Option("--version", help="print the version",
+                                          is_eager=True, callback=_print_version)] = False,
 ) -> None:
     _state["debug"] = debug
-    if version:
-        out_console.print(f"rrtcolearn {__version__}")
-        raise typer.Exit(0)
 
 
 @app.command()
