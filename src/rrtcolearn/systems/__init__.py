@@ -30,6 +30,14 @@ def make(name: str) -> System:
     return factory()
 
 
+def _double_integrator() -> System:
+    # imported on use: the symbolic derivation needs sympy, which takes a while to import
+    from rrtcolearn.systems.double_integrator import make_double_integrator
+
+    return make_double_integrator()
+
+
 register("pendulum", make_pendulum)
+register("double_integrator", _double_integrator)
 
 __all__ = ["System", "list_systems", "make", "register"]
