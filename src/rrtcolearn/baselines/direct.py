@@ -507,6 +507,7 @@ def solve_direct_rrt(model: DirectModel, start, goal, goal_tolerance: float = 0.
     which is what ``cpu_s`` reports, for fair limits on a shared machine.
     """
     from rrtcolearn.planning.problem import PlanningProblem
+    from rrtcolearn.planning.termination import TerminationCondition
 
     if polish_edges not in ("goal", "all", "none"):
         raise ValueError(f"polish_edges must be 'goal', 'all' or 'none', got {polish_edges!r}")
@@ -534,14 +535,10 @@ def solve_direct_rrt(model: DirectModel, start, goal, goal_tolerance: float = 0.
                 "collision": 0, "polished": 0, "solves": 0}
     iterations = 0
     solve_cpu = 0.0
+    stop = TerminationCondition(time_limit, max_iterations, cpu_time_limit)
     cpu0, wall0 = time.process_time(), time.perf_counter()
-    while goal_node < 0:
-        if max_iterations is not None and iterations >= max_iterations:
-            break
-        if time.perf_counter() - wall0 >= time_limit:
-            break
-        if cpu_time_limit is not None and time.process_time() - cpu0 >= cpu_time_limit:
-            break
+    stop.start()
+    while goal_node < 0 and not stop(iterations):
         iterations += 1
         to_goal = rng.random() < goal_bias
         target = prob.goal if to_goal else rng.uniform(sys.state_low, sys.state_high)

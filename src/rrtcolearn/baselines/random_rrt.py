@@ -13,6 +13,7 @@ import numpy as np
 
 from rrtcolearn.baselines.base import BaselineResult, ControlPath
 from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.termination import TerminationCondition
 
 
 def _propagate(system, x: np.ndarray, u: np.ndarray, steps: int, dt: float) -> np.ndarray:
@@ -50,12 +51,10 @@ def solve_random_rrt(problem: PlanningProblem, *, seed: int = 0, time_limit: flo
     check = bool(problem.validity)
     goal_node = -1
     iterations = 0
-    cpu0, wall0 = time.process_time(), time.perf_counter()
-    while goal_node < 0:
-        if max_iterations is not None and iterations >= max_iterations:
-            break
-        if time.perf_counter() - wall0 >= time_limit:
-            break
+    stop = TerminationCondition(time_limit, max_iterations)
+    cpu0 = time.process_time()
+    stop.start()
+    while goal_node < 0 and not stop(iterations):
         iterations += 1
         target = problem.goal if rng.random() < goal_bias else \
             rng.uniform(sys.state_low, sys.state_high)
@@ -91,7 +90,7 @@ def solve_random_rrt(problem: PlanningProblem, *, seed: int = 0, time_limit: flo
         if hit.size:
             goal_node = count
         count += 1
-    cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+    cpu, wall = time.process_time() - cpu0, stop.elapsed()
     if goal_node >= 0:
         status, last = "exact", goal_node
     else:
