@@ -168,3 +168,13 @@ def test_u_max_and_obstacle_options(tiny_run, tmp_path):
     assert "u_max = 1.0" in (tmp_path / "g" / "config.toml").read_text()
     result = invoke("generate", "--out", str(tmp_path / "h"), "--u-max", "-1")
     assert_one_line_error(result, contains="u_max")
+
+
+def test_unusable_output_paths(tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    result = invoke("generate", "--out", str(afile), "--set", "generate.n_simulations=10")
+    assert_one_line_error(result, code=2, contains="not a directory")
+    result = invoke("generate", "--out", "/proc/not-writable", "--set",
+                    "generate.n_simulations=10")
+    assert_one_line_error(result, code=3, contains="cannot read or write")

@@ -112,6 +112,11 @@ def _guard(fn):
         raise typer.Exit(130) from None
     except MemoryError:
         _fail("out of memory; reduce generate.n_simulations", 3)
+    except OSError as exc:  # unwritable directory, disk full, ...: the environment, not a bug
+        if _caused_by_interrupt(exc):
+            console.print(_INTERRUPTED)
+            raise typer.Exit(130) from None
+        _fail(f"cannot read or write a file: {exc}", 3)
     except Exception as exc:  # an internal error: still one line unless --debug
         if _caused_by_interrupt(exc):
             console.print(_INTERRUPTED)
@@ -139,7 +144,10 @@ def _config(config: Path | None, seed: int | None, overrides: list[str] | None,
 
 
 def _run_dir(out: Path | None, cfg: Config) -> Path:
-    return out if out is not None else Path("runs") / cfg.name
+    run_dir = out if out is not None else Path("runs") / cfg.name
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ConfigError(f"--out {run_dir} exists and is not a directory")
+    return run_dir
 
 
 def _progress() -> Progress:
