@@ -81,7 +81,7 @@ def test_generate_resumes_after_sigkill(tmp_path: Path):
     cfg = cfg.model_copy(update={"seed": 5})
     resumed, stats = generate(cfg, out)
     assert stats.resumed_chunks >= finished
-    assert not shards.exists()
+    assert not shards.exists() and not shards.parent.exists()
     fresh, _ = generate(cfg, tmp_path / "fresh")
     assert same(resumed, fresh)
     digests = {r["file"]: r["sha256"] for r in inspect_run(out)}

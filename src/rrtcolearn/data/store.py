@@ -225,3 +225,5 @@ class ShardStore:
     def remove(self) -> None:
         if self.directory.is_dir():
             shutil.rmtree(self.directory)
+        with contextlib.suppress(OSError):  # the parent too, once no other store uses it
+            self.directory.parent.rmdir()
