@@ -100,3 +100,9 @@ def test_finished_dataset_is_not_recomputed(tmp_path: Path):
     changed, _ = generate(other, tmp_path)
     assert not np.array_equal(changed.x1[:5], data.x1[:5])
     assert load_dataset(tmp_path / "dataset.npz")[1]["config"]["seed"] == 1
+
+
+@pytest.mark.parametrize("chunk_size", [1, 97, 3000])
+def test_chunking_does_not_change_the_data(pendulum, serial, chunk_size):
+    data, _ = generate_data(pendulum, 21, 3000, chunk_size=chunk_size)
+    assert same(data, serial)

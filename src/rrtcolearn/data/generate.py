@@ -30,11 +30,21 @@ class GenerationStats:
     worker_cpu_s: float = 0.0  # CPU time of the simulations, in whichever process ran them
 
 
-def sample_starts(system: System, rng: np.random.Generator, n: int,
+def sample_starts(system: System, seed: int | np.random.SeedSequence, first: int, n: int,
                   w: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Sample n start states, costate parameters and costates; returns (x0, p, lam, valid)."""
-    x0 = rng.uniform(system.state_low, system.state_high, size=(n, system.n_states))
-    p = rng.uniform(system.param_low, system.param_high, size=(n, system.n_params))
+    """Start states, costate parameters and costates of simulations first..first+n-1.
+
+    Simulation i takes its uniforms from block i of one counter-based (Philox) stream keyed
+    by ``seed``, so its start never depends on how simulations are split into chunks.
+    Returns (x0, p, lam, valid).
+    """
+    ns, k = system.n_states, system.n_params
+    stride = 4 * -(-(ns + k) // 4)  # Philox yields 4 doubles per counter step
+    bitgen = np.random.Philox(_fresh(seed))
+    bitgen.advance(first * stride // 4)
+    u = np.random.Generator(bitgen).random((n, stride))
+    x0 = system.state_low + (system.state_high - system.state_low) * u[:, :ns]
+    p = system.param_low + (system.param_high - system.param_low) * u[:, ns : ns + k]
     lam, valid = system.costate_from_params(x0, p, w)
     return x0, p, lam, valid
 
@@ -54,9 +64,8 @@ def simulate_chunk(
 ) -> tuple[Dataset, GenerationStats]:
     """Generate the data points of ``n_simulations`` simulations from one seed."""
     cpu0 = time.process_time()
-    rng = np.random.default_rng(seed)
     n = system.n_states
-    x0, p, lam, valid = sample_starts(system, rng, n_simulations, time_weight)
+    x0, p, lam, valid = sample_starts(system, seed, first_index, n_simulations, time_weight)
     sim_index = first_index + np.flatnonzero(valid)
     x0, p, lam = x0[valid], p[valid], lam[valid]
     z0 = np.hstack([x0, lam, np.zeros((len(x0), 1))])
@@ -174,16 +183,16 @@ def generation_tasks(
     u_max: float | None = None,
     max_duration: float = 20.0,
 ) -> list[GenerationTask]:
-    """Alg. 2 split into chunks; chunk c is seeded by ``SeedSequence(seed).spawn(n)[c]``."""
+    """Alg. 2 split into chunks of ``chunk_size`` simulations (see `sample_starts`)."""
     if n_simulations < 1 or chunk_size < 1:
         raise ValueError("n_simulations and chunk_size must be positive")
     n_chunks = -(-n_simulations // chunk_size)
-    seeds = _fresh(seed).spawn(n_chunks)
+    root = _fresh(seed)
     return [
         GenerationTask(system, c, c * chunk_size,
-                       min(chunk_size, n_simulations - c * chunk_size), ss, time_weight, dt,
+                       min(chunk_size, n_simulations - c * chunk_size), root, time_weight, dt,
                        max_cost, max_state_distance, u_max, max_duration)
-        for c, ss in enumerate(seeds)
+        for c in range(n_chunks)
     ]
 
 
@@ -222,8 +231,8 @@ def generate_data(
 ) -> tuple[Dataset, GenerationStats]:
     """Alg. 2 over ``n_simulations`` simulations in fixed-size chunks.
 
-    The dataset depends on the seed and ``chunk_size`` only, never on the backend or the
-    number of workers (``settings``). ``progress(k)`` is called with the number of
+    The dataset depends on the seed only: neither on ``chunk_size``, nor on the backend or
+    the number of workers (``settings``). ``progress(k)`` is called with the number of
     simulations of each finished chunk.
     """
     tasks = generation_tasks(system, seed, n_simulations, time_weight=time_weight, dt=dt,
