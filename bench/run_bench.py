@@ -30,11 +30,15 @@ BLOCKING_BOX = {"type": "box", "low": [-2.0, 0.3], "high": [-1.2, 2.5]}
 LIMITED = {"u1": (1.0, 0.1), "u2": (2.0, 1.0)}
 
 
-def plan_stats(model, prefix: str, n: int = QUERIES, **kwargs) -> dict:
-    """Success, CPU, nodes and cost over n seeded swing-up queries (tolerance 0.1)."""
-    plan(model, [-np.pi, 0], [0, 0], 0.1, seed=10_000, **kwargs)  # warm-up
-    plans = [plan(model, [-np.pi, 0], [0, 0], 0.1, seed=s, time_limit=10.0, **kwargs)
-             for s in range(n)]
+def plan_stats(models, prefix: str, n: int = QUERIES, **kwargs) -> dict:
+    """Success, CPU, nodes and cost over n seeded swing-up queries (tolerance 0.1) on each
+    model (a list of epochs' models, or one)."""
+    models = models if isinstance(models, list) else [models]
+    plans = []
+    for model in models:
+        plan(model, [-np.pi, 0], [0, 0], 0.1, seed=10_000, **kwargs)  # warm-up
+        plans += [plan(model, [-np.pi, 0], [0, 0], 0.1, seed=s, time_limit=10.0, **kwargs)
+                  for s in range(n)]
     solved = [p for p in plans if p.solved]
     cpu = [p.planning_cpu_s for p in plans]
     return {
@@ -77,15 +81,20 @@ def main() -> None:
     small, _ = generate_data(system, 0, 500)  # warm-up: load compiled kernels
     clean_data(small)
     times = []
+    models = []
     for r in range(REPEATS):
         data, cleaned, functions, t = offline(system, cfg, seed=1 + r)
         times.append(t)
+        models.append(FittedModel(system, cfg, functions, float(cleaned.duration.max()),
+                                  cfg.generate.max_state_distance))
         print(f"offline repeat {r}: generate {t[0]:.2f} s, clean {t[1]:.2f} s, "
               f"fit {t[2]:.2f} s CPU", file=sys.stderr)
     gen, cln, fit = (statistics.median(x) for x in zip(*times, strict=True))
-    model = FittedModel(system, cfg, functions, float(cleaned.duration.max()),
-                        cfg.generate.max_state_distance)
-    main_stats = plan_stats(model, "")
+    model = models[-1]
+    # the planning figures pool 100 queries on each of the 3 epochs' models: one dataset's
+    # median moves by several ms from one epoch to the next
+    main_stats = plan_stats(models, "")
+    per_epoch = [plan_stats(m, "")["plan_cpu_s_median"] for m in models]
     obstacle_stats = plan_stats(model, "obstacle_", obstacles=[BLOCKING_BOX])
     limited_stats = {}
     for prefix, (u_max, w) in LIMITED.items():
@@ -103,6 +112,7 @@ def main() -> None:
         "raw_points": len(data),
         "kept_points": len(cleaned),
         "plan_success_rate": main_stats.pop("success_rate"),
+        "plan_cpu_s_median_per_epoch": per_epoch,
         "plan_max_abs_u": main_stats.pop("max_abs_u"),
         **main_stats,
         "steer_mse_median": float(f"{np.median(err.steer_mse):.3g}"),
