@@ -18,6 +18,7 @@ def make_damped_pendulum():
         state_low=[-4.712, -3.1416], state_high=[1.5708, 3.1416],
         angle_dims=[0],
         description="Pendulum with viscous damping b = 0.1",
+        defaults={"start": [-3.14159, 0.0], "goal": [0.0, 0.0]},     # the query `run` plans
     )
 
 

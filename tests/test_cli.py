@@ -178,3 +178,20 @@ def test_unusable_output_paths(tmp_path):
     result = invoke("generate", "--out", "/proc/not-writable", "--set",
                     "generate.n_simulations=10")
     assert_one_line_error(result, code=3, contains="cannot read or write")
+
+
+def test_system_from_a_users_module(tmp_path, monkeypatch):
+    monkeypatch.chdir(Path(__file__).parents[1])
+    out = tmp_path / "damped"
+    result = invoke("run", "--system", "examples.damped_pendulum:make_damped_pendulum",
+                    "--out", str(out), "--set", "generate.n_simulations=3000",
+                    "--set", "plan.max_iterations=50", "--set", "plan.goal_tolerance=0.3")
+    assert result.exit_code == 0, result.output
+    plan = json.loads((out / "plan.json").read_text())
+    assert plan["system"] == "damped_pendulum"
+    assert "damped_pendulum" in (out / "config.toml").read_text()
+    for spec, contains in (("nosuchmodule:thing", "cannot import"),
+                           ("examples.damped_pendulum:nothing", "has no"),
+                           ("rocket", "unknown system")):
+        result = invoke("generate", "--system", spec, "--out", str(tmp_path / "x"))
+        assert_one_line_error(result, contains=contains)

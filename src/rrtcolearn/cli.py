@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import signal
 import sys
 import time
@@ -67,6 +68,8 @@ ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="TOML con
 SeedOpt = Annotated[int | None, typer.Option("--seed", help="random seed (overrides config)")]
 OutOpt = Annotated[Path | None, typer.Option("--out", help="run directory (default runs/<name>)")]
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override: section.key=value")]
+SystemOpt = Annotated[str | None, typer.Option(
+    "--system", help="registered system name, or module:attribute of your own")]
 UMaxOpt = Annotated[float | None, typer.Option("--u-max", help="torque limit |u| <= U_MAX")]
 WorkersOpt = Annotated[int | None, typer.Option(
     "--workers", help="local worker processes (results do not depend on it)")]
@@ -128,11 +131,13 @@ def _guard(fn):
 
 def _config(config: Path | None, seed: int | None, overrides: list[str] | None,
             run_dir: Path | None = None, u_max: float | None = None,
-            obstacles: list[str] | None = None) -> Config:
+            obstacles: list[str] | None = None, system: str | None = None) -> Config:
     base = {}
     if run_dir is not None and (run_dir / "config.toml").is_file():
         base = read_toml(run_dir / "config.toml")
     overrides = list(overrides or [])
+    if system is not None:
+        overrides.append(f"system.name={json.dumps(system)}")
     if u_max is not None:
         overrides.append(f"system.u_max={u_max!r}")
     cfg = add_obstacles(load_config(config, overrides, base=base), list(obstacles or []))
@@ -232,11 +237,12 @@ def systems() -> None:
 @app.command()
 def generate(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
              set_: SetOpt = None, u_max: UMaxOpt = None, workers: WorkersOpt = None,
-             scheduler: SchedulerOpt = None, dask_local: DaskLocalOpt = None) -> None:
+             scheduler: SchedulerOpt = None, dask_local: DaskLocalOpt = None,
+             system: SystemOpt = None) -> None:
     """Generate a dataset of optimal trajectory segments (Alg. 2); resumable."""
     def body():
         settings = ExecutionSettings.from_options(workers, scheduler, dask_local)
-        cfg = _config(config, seed, set_, u_max=u_max)
+        cfg = _config(config, seed, set_, u_max=u_max, system=system)
         run_dir = _run_dir(out, cfg)
         _print_summary(f"generate -> {run_dir}", _do_generate(cfg, run_dir, settings))
     _guard(body)
@@ -244,10 +250,11 @@ def generate(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
 
 @app.command()
 def clean(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
+          system: SystemOpt = None,
           set_: SetOpt = None) -> None:
     """Remove the local-optimum bias from a run's dataset (Alg. 3)."""
     def body():
-        cfg = _config(config, seed, set_, out)
+        cfg = _config(config, seed, set_, out, system=system)
         run_dir = _run_dir(out, cfg)
         _print_summary(f"clean -> {run_dir}", _do_clean(cfg, run_dir))
     _guard(body)
@@ -255,10 +262,11 @@ def clean(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
 
 @app.command()
 def fit(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
+        system: SystemOpt = None,
         set_: SetOpt = None) -> None:
     """Fit the cost-to-go, steering and validity learners on a run's cleaned dataset."""
     def body():
-        cfg = _config(config, seed, set_, out)
+        cfg = _config(config, seed, set_, out, system=system)
         run_dir = _run_dir(out, cfg)
         _, figures = _do_fit(cfg, run_dir)
         _print_summary(f"fit -> {run_dir}", figures)
@@ -289,6 +297,7 @@ def plan(
     set_: SetOpt = None,
     u_max: UMaxOpt = None,
     obstacle: ObstacleOpt = None,
+    system_name: SystemOpt = None,
 ) -> None:
     """Plan one query with a fitted model; writes the plan JSON and a PNG of the tree."""
     def body():
@@ -303,6 +312,9 @@ def plan(
                                  else f"plan.{key}=[{', '.join(map(repr, value))}]")
         # validate everything before the model is loaded: the query, the config, the files
         _, model_cfg, system = pipeline.read_model_info(run_dir)
+        if system_name is not None and system_name != model_cfg.system.name:
+            raise ConfigError(f"--system {system_name}: the model in {run_dir} was fitted for "
+                              f"{model_cfg.system.name!r}")
         if seed is not None and seed < 0:
             raise ConfigError("--seed must be a non-negative integer")
         if u_max is not None:
@@ -312,7 +324,8 @@ def plan(
             "plan": model_cfg.plan.model_dump(),
             "system": model_cfg.system.model_dump(exclude_none=True)})
         cfg = add_obstacles(cfg, list(obstacle or []))
-        PlanningProblem.create(system, cfg.plan.start, cfg.plan.goal, cfg.plan.goal_tolerance,
+        start_x, goal_x = pipeline.query_states(cfg, system)
+        PlanningProblem.create(system, start_x, goal_x, cfg.plan.goal_tolerance,
                                u_max=cfg.system.u_max,
                                obstacles=[o.model_dump() for o in cfg.plan.obstacles])
         out_path = out if out is not None else run_dir / "plan.json"
@@ -322,8 +335,8 @@ def plan(
         fitted = pipeline.load_model(run_dir)
         p_cfg = fitted.config.model_copy(update={"plan": cfg.plan, "system": cfg.system})
         plan_seed = seed if seed is not None else fitted.config.seed
-        p = pipeline.plan(fitted, cfg.plan.start, cfg.plan.goal, cfg.plan.goal_tolerance,
-                          plan_seed, config=p_cfg, time_limit=cfg.plan.time_limit,
+        p = pipeline.plan(fitted, start_x, goal_x, cfg.plan.goal_tolerance, plan_seed,
+                          config=p_cfg, time_limit=cfg.plan.time_limit,
                           max_iterations=cfg.plan.max_iterations)
         _write_plan(p, out_path)
         _print_summary(f"plan -> {out_path}", _plan_summary(p))
@@ -334,11 +347,11 @@ def plan(
 def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         set_: SetOpt = None, u_max: UMaxOpt = None, obstacle: ObstacleOpt = None,
         workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
-        dask_local: DaskLocalOpt = None) -> None:
+        dask_local: DaskLocalOpt = None, system: SystemOpt = None) -> None:
     """The whole pipeline: generate, clean, fit, and plan the configured query."""
     def body():
         settings = ExecutionSettings.from_options(workers, scheduler, dask_local)
-        cfg = _config(config, seed, set_, u_max=u_max, obstacles=obstacle)
+        cfg = _config(config, seed, set_, u_max=u_max, obstacles=obstacle, system=system)
         run_dir = _run_dir(out, cfg)
         t0 = time.perf_counter()
         figures = {"run_dir": str(run_dir)}
@@ -348,7 +361,8 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         figures |= fit_fig
         figures["offline_cpu_s"] = round(figures["generate_cpu_s"] + figures["clean_cpu_s"]
                                          + figures["fit_cpu_s"], 3)
-        p = pipeline.plan(fitted, cfg.plan.start, cfg.plan.goal, cfg.plan.goal_tolerance,
+        start, goal = pipeline.query_states(cfg, fitted.system)
+        p = pipeline.plan(fitted, start, goal, cfg.plan.goal_tolerance,
                           cfg.seed, config=cfg, time_limit=cfg.plan.time_limit,
                           max_iterations=cfg.plan.max_iterations)
         _write_plan(p, run_dir / "plan.json")

@@ -102,8 +102,9 @@ ObstacleConfig = Annotated[BoxObstacle | HalfPlaneObstacle, Field(discriminator=
 
 
 class PlanConfig(_Section):
-    start: list[float] = Field(default_factory=lambda: [-math.pi, 0.0])
-    goal: list[float] = Field(default_factory=lambda: [0.0, 0.0])
+    start: list[float] | None = Field(None, description="default: the system's (pendulum: "
+                                      "[-pi, 0])")
+    goal: list[float] | None = Field(None, description="default: the system's (pendulum: [0, 0])")
     goal_tolerance: float = Field(0.1, gt=0)
     goal_bias: float = Field(0.2, ge=0, le=1)
     sigma: float = Field(math.pi / 4, gt=0)

@@ -299,6 +299,17 @@ def load_model(run_dir: str | Path) -> FittedModel:
 _FROM_CONFIG = object()
 
 
+def query_states(config: Config, system: System) -> tuple[list[float], list[float]]:
+    """The configured start and goal, or the system's defaults where they are not set."""
+    start = config.plan.start if config.plan.start is not None else \
+        system.defaults.get("start")
+    goal = config.plan.goal if config.plan.goal is not None else system.defaults.get("goal")
+    if start is None or goal is None:
+        raise ConfigError(f"system {system.name!r} has no default query: set plan.start and "
+                          "plan.goal")
+    return list(start), list(goal)
+
+
 def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, *,
          config: Config | None = None, time_limit: float | None = 10.0,
          max_iterations: int | None = None, u_max=_FROM_CONFIG, obstacles=_FROM_CONFIG,

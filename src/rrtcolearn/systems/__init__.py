@@ -21,13 +21,42 @@ def list_systems() -> list[str]:
 
 
 def make(name: str) -> System:
-    """Build the registered system ``name``; ValueError names the known ones otherwise."""
+    """Build the system ``name``: a registered name, or ``module:attribute`` naming a
+    `System` or a function returning one in the user's own Python module (imported, with the
+    current directory on the path). ValueError with a one-line reason otherwise."""
+    if name not in _REGISTRY and ":" in name:
+        return _from_module(name)
     try:
         factory = _REGISTRY[name]
     except KeyError:
         known = ", ".join(list_systems())
-        raise ValueError(f"unknown system {name!r}; known systems: {known}") from None
+        raise ValueError(f"unknown system {name!r}; known systems: {known}, or give "
+                         "module:attribute") from None
     return factory()
+
+
+def _from_module(spec: str) -> System:
+    import importlib
+    import os
+    import sys
+
+    module_name, _, attribute = spec.partition(":")
+    if not module_name or not attribute:
+        raise ValueError(f"system {spec!r}: expected module:attribute")
+    if os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ValueError(f"system {spec!r}: cannot import {module_name!r} ({exc})") from None
+    try:
+        obj = getattr(module, attribute)
+    except AttributeError:
+        raise ValueError(f"system {spec!r}: {module_name!r} has no {attribute!r}") from None
+    system = obj() if callable(obj) and not isinstance(obj, System) else obj
+    if not isinstance(system, System):
+        raise ValueError(f"system {spec!r} is a {type(system).__name__}, not a System")
+    return system
 
 
 def _double_integrator() -> System:

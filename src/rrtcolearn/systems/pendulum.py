@@ -109,5 +109,5 @@ def make_pendulum() -> System:
         hamiltonian=hamiltonian,
         dynamics=dynamics,
         description="Pendulum swing-up, x = (theta, omega), f = (omega, sin(theta) + u)",
-        defaults={"start": [-np.pi, 0.0], "goal": [0.0, 0.0]},
+        defaults={"start": [-math.pi, 0.0], "goal": [0.0, 0.0]},
     )
