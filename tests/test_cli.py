@@ -195,3 +195,13 @@ def test_system_from_a_users_module(tmp_path, monkeypatch):
                            ("rocket", "unknown system")):
         result = invoke("generate", "--system", spec, "--out", str(tmp_path / "x"))
         assert_one_line_error(result, contains=contains)
+
+
+def test_error_messages_stay_one_literal_line(tmp_path):
+    """Control characters and rich markup in user input are shown escaped, never obeyed."""
+    for args in (["generate", "--config", "\x1e0"], ["generate", "--config", "[/]x"],
+                 ["generate", "--set", "[red]a=1"]):
+        result = invoke(*args)
+        assert_one_line_error(result)
+    assert "\\x1e0" in invoke("generate", "--config", "\x1e0").output
+    assert "[/]x" in invoke("generate", "--config", "[/]x").output

@@ -11,6 +11,7 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -44,8 +45,8 @@ class _OneLineErrors(TyperGroup):
             print(exc.ctx.get_help() if exc.ctx else str(exc))
             sys.exit(0)
         except _click_errors.ClickException as exc:
-            console.print(f"[bold red]error:[/] {exc.format_message()}", highlight=False,
-                          soft_wrap=True)
+            console.print(f"[bold red]error:[/] {_printable(exc.format_message())}",
+                          highlight=False, soft_wrap=True)
             sys.exit(exc.exit_code)
         except typer.Abort:
             console.print(_INTERRUPTED)
@@ -81,8 +82,14 @@ ObstacleOpt = Annotated[list[str] | None, typer.Option(
     "--obstacle", help="forbidden region: box:lo1,lo2,hi1,hi2 or halfplane:n1,n2,offset")]
 
 
+def _printable(message: str) -> str:
+    """The message with control characters and rich markup escaped: one literal line."""
+    return escape("".join(c if c.isprintable() else repr(c)[1:-1] for c in message))
+
+
 def _fail(message: str, code: int) -> None:
-    console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    console.print(f"[bold red]error:[/] {_printable(message)}", highlight=False,
+                  soft_wrap=True, markup=True)
     raise typer.Exit(code)
 
 
