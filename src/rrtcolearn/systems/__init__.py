@@ -66,7 +66,21 @@ def _double_integrator() -> System:
     return make_double_integrator()
 
 
+def _cartpole() -> System:
+    from rrtcolearn.systems.cartpole import make_cartpole
+
+    return make_cartpole()
+
+
+def _acrobot() -> System:
+    from rrtcolearn.systems.acrobot import make_acrobot
+
+    return make_acrobot()
+
+
 register("pendulum", make_pendulum)
 register("double_integrator", _double_integrator)
+register("cartpole", _cartpole)
+register("acrobot", _acrobot)
 
 __all__ = ["System", "list_systems", "make", "register"]

@@ -1,0 +1,55 @@
+"""Acrobot swing-up, x = (theta1, theta2, theta1', theta2'), built through `symbolic`.
+
+Two-link arm actuated at the elbow, as in R. Tedrake, *Underactuated Robotics* (MIT course
+notes), chapter "Acrobots, Cart-Poles, and Quadrotors" (after Spong 1995): theta1 is the
+shoulder angle from hanging down, theta2 the elbow angle relative to the first link; with
+the parameters of that chapter: m1 = m2 = 1 kg, l1 = 1 m, l2 = 2 m, lc1 = 0.5 m, lc2 = 1 m,
+inertias about the centres of mass Ic1 = 0.083, Ic2 = 0.33 kg m^2 (I1 = Ic1 + m1 lc1^2 and
+I2 = Ic2 + m2 lc2^2 about the joints), g = 9.81 m/s^2. The manipulator equations
+M(q) q'' + C(q, q') q' = tau_g(q) + B u, B = (0, 1)^T, are solved for q'' symbolically,
+which is input-affine in the elbow torque u. Standard swing-up query: from hanging
+(0, 0, 0, 0) to upright (pi, 0, 0, 0).
+"""
+
+from __future__ import annotations
+
+import math
+
+import sympy
+
+from rrtcolearn.systems.symbolic import SymbolicSystem, build_system
+
+
+def make_acrobot() -> SymbolicSystem:
+    """The acrobot of Tedrake's notes (m 1, 1; l 1, 2; lc 0.5, 1; Ic 0.083, 0.33)."""
+    q1, q2, dq1, dq2, u = sympy.symbols("theta1 theta2 dtheta1 dtheta2 u", real=True)
+    m1, m2, l1, lc1, lc2, ic1, ic2, g = sympy.symbols("m1 m2 l1 lc1 lc2 Ic1 Ic2 g",
+                                                       positive=True)
+    # inertias about the joints, from those about the centres of mass (parallel axes)
+    i1, i2 = ic1 + m1 * lc1**2, ic2 + m2 * lc2**2
+    c2, s1, s2, s12 = sympy.cos(q2), sympy.sin(q1), sympy.sin(q2), sympy.sin(q1 + q2)
+    mass = sympy.Matrix([
+        [i1 + i2 + m2 * l1**2 + 2 * m2 * l1 * lc2 * c2, i2 + m2 * l1 * lc2 * c2],
+        [i2 + m2 * l1 * lc2 * c2, i2]])
+    coriolis = sympy.Matrix([
+        [-2 * m2 * l1 * lc2 * s2 * dq2, -m2 * l1 * lc2 * s2 * dq2],
+        [m2 * l1 * lc2 * s2 * dq1, 0]])
+    gravity = sympy.Matrix([
+        -m1 * g * lc1 * s1 - m2 * g * (l1 * s1 + lc2 * s12),
+        -m2 * g * lc2 * s12])
+    minv = mass.inv()
+    accel = minv * (gravity - coriolis * sympy.Matrix([dq1, dq2]))
+    b = minv * sympy.Matrix([0, 1])
+    return build_system(
+        "acrobot", states=[q1, q2, dq1, dq2], inputs=[u],
+        drift=[dq1, dq2, accel[0], accel[1]],
+        input_matrix=[[0], [0], [b[0]], [b[1]]], input_weight=[[1]],
+        parameters={m1: 1.0, m2: 1.0, l1: 1.0, lc1: 0.5, lc2: 1.0, ic1: 0.083, ic2: 0.33,
+                    g: 9.81},
+        state_low=[-math.pi / 2, -math.pi, -4.0, -8.0],
+        state_high=[3 * math.pi / 2, math.pi, 4.0, 8.0],
+        angle_dims=[0, 1], state_names=["theta1", "theta2", "theta1_dot", "theta2_dot"],
+        input_names=["elbow_torque"],
+        description="Acrobot swing-up (Tedrake/Spong parameters), theta1 = 0 hanging down",
+        defaults={"start": [0.0, 0.0, 0.0, 0.0], "goal": [math.pi, 0.0, 0.0, 0.0]},
+    )
