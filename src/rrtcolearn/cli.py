@@ -174,6 +174,8 @@ def _do_generate(cfg: Config, run_dir: Path, settings=None) -> dict:
         (_, stats), cpu = pipeline.timed(pipeline.generate, cfg, run_dir,
                                          progress=lambda k: bar.advance(task, k),
                                          settings=settings)
+    if settings is not None and settings.backend != "serial":
+        cpu += stats.worker_cpu_s  # the workers' own CPU, which this process does not see
     return {"simulations": stats.simulations, "invalid_costates": stats.invalid_costates,
             "raw_points": stats.points, "nonfinite_simulations": stats.nonfinite_simulations,
             "resumed_chunks": stats.resumed_chunks,

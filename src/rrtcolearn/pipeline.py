@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -126,7 +125,9 @@ def generate(config: Config, run_dir: str | Path,
             if meta.get("generation_key") == key:
                 if progress is not None:
                     progress(config.generate.n_simulations)
-                return data, GenerationStats(**meta["stats"])
+                # nothing was computed by this call
+                return data, dataclasses.replace(GenerationStats(**meta["stats"]),
+                                                 worker_cpu_s=0.0)
         except ArtefactError:
             pass  # a damaged or foreign file is regenerated
     g = config.generate
@@ -141,8 +142,11 @@ def generate(config: Config, run_dir: str | Path,
     if progress is not None:
         progress(sum(t.count for t, part in zip(tasks, parts, strict=True) if part is not None))
 
+    computed_cpu = [0.0]
+
     def finished(i: int, result) -> None:
         task = todo[i]
+        computed_cpu[0] += result[1].worker_cpu_s
         shards.save(task.chunk, result, {"system": system.name})
         parts[task.chunk] = result
         if progress is not None:
@@ -150,7 +154,8 @@ def generate(config: Config, run_dir: str | Path,
 
     map_tasks(run_generation_task, todo, settings, finished)
     data, stats = merge(parts)
-    stats = dataclasses.replace(stats, resumed_chunks=len(tasks) - len(todo))
+    stats = dataclasses.replace(stats, resumed_chunks=len(tasks) - len(todo),
+                                worker_cpu_s=computed_cpu[0])
     save_config(config, run_dir)
     save_dataset(final, data, _meta(config, system, stats=dataclasses.asdict(stats),
                                     generation_key=key))
@@ -348,17 +353,12 @@ def read_plan(path: str | Path) -> dict:
     return read_checked_json(path, PLAN_FORMAT, PLAN_SCHEMA, "plan file")
 
 
-def _cpu_seconds() -> float:
-    """CPU time of this process and of its finished child processes (local workers)."""
-    children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.process_time() + children.ru_utime + children.ru_stime
-
-
 def timed(fn, *args, **kwargs):
-    """(result, CPU seconds of this process and the worker processes it waited for)."""
-    t0 = _cpu_seconds()
+    """(result, CPU seconds of this process). Worker processes are kept between calls, so
+    their CPU is reported by the work itself (``GenerationStats.worker_cpu_s``)."""
+    t0 = time.process_time()
     out = fn(*args, **kwargs)
-    return out, _cpu_seconds() - t0
+    return out, time.process_time() - t0
 
 
 _TIMING_KEYS = {"planning_time_s", "planning_cpu_s", "wall_s", "generate_cpu_s", "clean_cpu_s",

@@ -27,7 +27,8 @@ class GenerationStats:
     points: int
     nonfinite_simulations: int = 0  # stopped by overflow or NaN; their finite prefix is kept
     resumed_chunks: int = 0  # chunks loaded from shards of an interrupted run
-    worker_cpu_s: float = 0.0  # CPU time of the simulations, in whichever process ran them
+    worker_cpu_s: float = 0.0  # CPU time of the simulations computed (not resumed) by this call,
+    # in whichever process ran them
 
 
 def sample_starts(system: System, seed: int | np.random.SeedSequence, first: int, n: int,
