@@ -6,6 +6,7 @@ documented in the README (goal bias, validity threshold).
 
 from __future__ import annotations
 
+import copy
 import difflib
 import math
 import tomllib
@@ -40,6 +41,9 @@ class _Section(BaseModel):
 
 class SystemConfig(_Section):
     name: str = "pendulum"
+    input_scale: list[float] | None = Field(
+        None, description="weights of the state coordinates in learning distances (default: "
+        "2*pi / sampling range, all 1 for the pendulum)")
     time_weight: float = Field(1.0, gt=0, description="w in the running cost w + u^2/2")
     u_max: float | None = Field(None, gt=0, description="torque limit |u| <= u_max (none: "
                                 "unbounded, the paper's setting)")
@@ -72,6 +76,8 @@ class LearnConfig(_Section):
     cost_upper: float = Field(1e5, gt=0)
     validity_threshold: float = Field(0.5, gt=0,
                                       description="max summed distance to the m neighbours")
+    periodic: bool = Field(True, description="angle coordinates wrap around in the distance "
+                           "(rows near the seam are indexed one turn over too)")
 
 
 class BoxObstacle(_Section):
@@ -113,6 +119,9 @@ class PlanConfig(_Section):
     time_limit: float | None = Field(10.0, gt=0)
     max_iterations: int | None = Field(None, ge=1)
     obstacles: list[ObstacleConfig] = Field(default_factory=list)
+    extend_distance: float | None = Field(
+        None, gt=0, description="move random targets to within this (weighted) distance of "
+        "their nearest node; none: the paper's planner")
     input_limit: Literal["reject", "cut"] = Field(
         "reject", description="an edge whose input exceeds u_max is rejected, or cut before it")
 
@@ -273,12 +282,24 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None,
                 base: dict[str, Any] | None = None) -> Config:
-    """Defaults, then ``base``, then the TOML file, then ``--set`` overrides; validated."""
-    data: dict[str, Any] = dict(base or {})
+    """Defaults, then the system's recommended configuration, then ``base``, then the TOML
+    file, then ``--set`` overrides; validated."""
+    data: dict[str, Any] = copy.deepcopy(base or {})
     if path is not None:
         _merge(data, read_toml(path))
     apply_overrides(data, list(overrides or []))
-    return validate(data)
+    return validate(with_system_defaults(data))
+
+
+def with_system_defaults(data: dict[str, Any]) -> dict[str, Any]:
+    """``data`` over the recommended configuration of the system it names (or the default)."""
+    from rrtcolearn.systems import recommended_config
+
+    system = data.get("system")
+    name = system.get("name", "pendulum") if isinstance(system, dict) else "pendulum"
+    merged = copy.deepcopy(recommended_config(name) if isinstance(name, str) else {})
+    _merge(merged, data)
+    return merged
 
 
 def _merge(into: dict, new: dict) -> None:

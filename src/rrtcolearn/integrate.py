@@ -55,7 +55,7 @@ def rollout_jit(z0, w, dt, n_steps):
 
 
 @_numba.njit(cache=True)
-def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max):
+def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max, scale=None):
     n_sims, d = z0.shape
     states = _np.empty((n_sims, max_steps, n))
     costs = _np.empty((n_sims, max_steps))
@@ -68,6 +68,9 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max):
     tmp = _np.empty(d)
     z = _np.empty(d)
     znew = _np.empty(d)
+    sc = _np.ones(n)
+    if scale is not None:
+        sc = scale
     for i in range(n_sims):
         z[:] = z0[i]
         if u_max > 0.0 and input_max_abs(z) > u_max:
@@ -77,7 +80,7 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max):
             ok = True
             dist2 = 0.0
             for j in range(n):
-                dx = znew[j] - z0[i, j]
+                dx = (znew[j] - z0[i, j]) * sc[j]
                 dist2 += dx * dx
             for j in range(d):
                 if not _math.isfinite(znew[j]):
@@ -122,11 +125,13 @@ def rollout_batch(
     max_dist: float,
     n: int,
     u_max: float | None = None,
+    scale: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Integrate rows of ``z0`` (S, 2n+1) until each stops.
 
     A row stops before the first step whose cost exceeds ``max_cost``, whose state is farther
-    than ``max_dist`` from its start, that is not finite, or (when ``u_max`` is given) whose
+    than ``max_dist`` from its start (distance weighted by ``scale`` (n,), default
+    ``system.metric_scale``), that is not finite, or (when ``u_max`` is given) whose
     optimal input exceeds ``u_max`` in magnitude; a row whose input at the start already
     exceeds it yields no points. Returns states (S, max_steps, n), costs (S, max_steps),
     lengths (S,) — row i's first ``lengths[i]`` steps are valid data points — and a (S,)
@@ -135,4 +140,5 @@ def rollout_batch(
     return system.rollout_batch_jit(
         np.ascontiguousarray(z0, dtype=np.float64), float(w), float(dt), int(max_steps),
         float(max_cost), float(max_dist), int(n),
-        float(u_max) if u_max is not None else -1.0)
+        float(u_max) if u_max is not None else -1.0,
+        np.ascontiguousarray(system.metric_scale if scale is None else scale, dtype=np.float64))

@@ -81,6 +81,12 @@ def build_system(config: Config) -> System:
             if len(value) != n:
                 raise ConfigError(f"config: generate.{key} needs {n} values, got {len(value)}")
             changes[key] = np.asarray(value, dtype=np.float64)
+    scale = config.system.input_scale
+    if scale is not None:
+        if len(scale) != system.n_states or not all(v > 0 for v in scale):
+            raise ConfigError(f"config: system.input_scale needs {system.n_states} positive "
+                              f"values, got {scale}")
+        changes["input_scale"] = np.asarray(scale, dtype=np.float64)
     system = dataclasses.replace(system, **changes)
     if np.any(system.state_low >= system.state_high):
         raise ConfigError("config: generate.state_low must be below state_high")
@@ -172,7 +178,8 @@ def clean(config: Config, run_dir: str | Path,
     raw, raw_meta = load_dataset(run_dir / DATASET_FILE, system.name)
     c = config.clean
     cleaned, result = clean_data(raw, d=c.d, k_max=c.k_max, method=c.method,
-                                 seed=seed_stream(config.seed, "clean"), progress=progress)
+                                 seed=seed_stream(config.seed, "clean"), progress=progress,
+                                 scale=system.metric_scale)
     stats = {"raw_points": len(raw), "kept_points": len(cleaned), "draws": result.draws,
              "dataset_sha256": raw_meta["sha256"]}
     config = _with_sections(config, raw_meta, ("system", "generate"))
@@ -203,13 +210,16 @@ class FittedModel:
         learn = self.config.learn
         # a query (x0, x1) farther apart than this cannot have m neighbours within the
         # validity threshold, since every data pair is at most max_state_distance apart
-        reach = self.max_state_distance + np.sqrt(2.0) * learn.validity_threshold / \
-            learn.n_neighbors
+        # (in raw units: a weighted distance r is at most r / min(weight) raw)
+        reach = (self.max_state_distance + np.sqrt(2.0) * learn.validity_threshold
+                 / learn.n_neighbors) / float(self.system.metric_scale.min())
         return PlannerSettings(
             time_weight=self.config.system.time_weight, dt=self.config.generate.dt,
             goal_bias=p.goal_bias, sigma=p.sigma, sigma_goal=p.sigma_goal,
             decimals=p.decimals, max_duration=self.max_duration, reach=float(reach),
-            input_limit=p.input_limit)
+            input_limit=p.input_limit,
+            extend_distance=np.inf if p.extend_distance is None else p.extend_distance,
+            metric_scale=self.system.metric_scale)
 
 
 def fit_functions(system: System, data: Dataset, config: Config) -> LearnedFunctions:
@@ -224,7 +234,10 @@ def fit_functions(system: System, data: Dataset, config: Config) -> LearnedFunct
         data.inputs, data.cost, np.hstack([data.params, data.duration[:, None]]),
         n_neighbors=learn.n_neighbors, cost_bounds=(learn.cost_lower, learn.cost_upper),
         validity_threshold=learn.validity_threshold, circular=system.param_circular,
-        low=tuple(system.param_low), high=tuple(system.param_high))
+        low=tuple(system.param_low), high=tuple(system.param_high),
+        input_scale=system.metric_scale,
+        periodic=tuple((j, float(system.state_low[j]), float(system.state_high[j]))
+                       for j in system.angle_dims) if learn.periodic else ())
 
 
 def fit(config: Config, run_dir: str | Path) -> FittedModel:

@@ -281,7 +281,10 @@ def clean_indices(
     )
 
 
-def clean_data(data: Dataset, **kwargs) -> tuple[Dataset, CleaningResult]:
-    """Alg. 3 on a dataset's (x0, x1) inputs; returns the kept rows and the cleaning record."""
-    result = clean_indices(data.inputs, data.cost, **kwargs)
+def clean_data(data: Dataset, scale: np.ndarray | None = None, **kwargs
+               ) -> tuple[Dataset, CleaningResult]:
+    """Alg. 3 on a dataset's (x0, x1) inputs, the state coordinates weighted by ``scale``
+    (n,) as in the learners' distance; returns the kept rows and the cleaning record."""
+    inputs = data.inputs if scale is None else data.inputs * np.tile(scale, 2)
+    result = clean_indices(inputs, data.cost, **kwargs)
     return data.take(result.keep), result

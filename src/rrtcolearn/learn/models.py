@@ -149,24 +149,53 @@ class LearnedFunctions:
     steering: SteeringRegressor
     validity: ValidityClassifier
 
+    input_scale: np.ndarray | None = None  # (2n,) weights applied to every query
+    source_: np.ndarray | None = None  # data row of each indexed point (padding repeats rows)
+
     @classmethod
     def fit(cls, X: np.ndarray, cost: np.ndarray, steering_targets: np.ndarray, *,
             n_neighbors: int = 3, cost_bounds: tuple[float, float] = (1e-5, 1e5),
             validity_threshold: float = 0.3, circular: tuple[bool, ...] = (),
-            low: tuple[float, ...] = (), high: tuple[float, ...] = ()) -> LearnedFunctions:
-        index = NeighbourIndex(X)
+            low: tuple[float, ...] = (), high: tuple[float, ...] = (),
+            input_scale: np.ndarray | None = None,
+            periodic: tuple[tuple[int, float, float], ...] = ()) -> LearnedFunctions:
+        """Fit on inputs X (N, 2n) = (x0, x1).
+
+        ``input_scale`` (n,) weights the state coordinates in the distance (both halves).
+        ``periodic`` lists angle coordinates as (j, low, high) with x0_j in [low, high) and
+        high - low one turn: rows near either end are repeated one turn over (x0_j and x1_j
+        shifted together, which leaves the problem unchanged), so a query near the seam finds
+        the neighbours on its other side.
+        """
+        X = np.asarray(X, dtype=np.float64)
+        n = X.shape[1] // 2
+        scale = np.ones(2 * n) if input_scale is None else np.tile(
+            np.asarray(input_scale, dtype=np.float64), 2)
+        source = np.arange(len(X))
+        if periodic and len(X):
+            source, X = _pad_periodic(X, periodic, scale, validity_threshold)
+        Xs = X * scale
+        index = NeighbourIndex(Xs)
+        cost = np.asarray(cost, dtype=np.float64)[source]
+        steering_targets = np.asarray(steering_targets, dtype=np.float64)[source]
         return cls(
-            CostToGoRegressor(n_neighbors, cost_bounds).fit(X, cost, index),
-            SteeringRegressor(n_neighbors, circular, low, high).fit(X, steering_targets, index),
-            ValidityClassifier(n_neighbors, validity_threshold).fit(X, None, index),
+            CostToGoRegressor(n_neighbors, cost_bounds).fit(Xs, cost, index),
+            SteeringRegressor(n_neighbors, circular, low, high).fit(Xs, steering_targets, index),
+            ValidityClassifier(n_neighbors, validity_threshold).fit(Xs, None, index),
+            None if input_scale is None else scale, source,
         )
 
     @property
     def n_neighbors(self) -> int:
         return self.cost_to_go.n_neighbors
 
+    def _scaled(self, X: np.ndarray) -> np.ndarray:
+        return X if self.input_scale is None else np.asarray(X, dtype=np.float64) * \
+            self.input_scale
+
     def query(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(J (Q,), U (Q, k+1), valid (Q,)) for queries X (Q, 2n)."""
+        X = self._scaled(X)
         dist, idx = self.cost_to_go.kneighbors(X)
         return (
             self.cost_to_go.predict_from_neighbours(dist, idx),
@@ -182,9 +211,29 @@ class LearnedFunctions:
         (valid rows (V,), J (V,), neighbour indices (V, m)); U follows from
         ``steering.predict_from_neighbours`` for the row the caller picks.
         """
+        X = self._scaled(X)
         rows = np.flatnonzero(self.validity.may_be_valid(X))
         dist, idx = self.cost_to_go.index_.query(X[rows], self.n_neighbors,
                                                  max_distance=self.validity.threshold)
         ok = dist.sum(axis=1) <= self.validity.threshold
         rows, dist, idx = rows[ok], dist[ok], idx[ok]
         return rows, self.cost_to_go.predict_from_neighbours(dist, idx), idx
+
+
+def _pad_periodic(X: np.ndarray, periodic, scale: np.ndarray, threshold: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(source rows, X with the rows within reach of a seam repeated one turn over)."""
+    n = X.shape[1] // 2
+    source = np.arange(len(X))
+    for j, lo, hi in periodic:
+        turn = hi - lo
+        pad = threshold / scale[j]  # a farther copy can never be a valid neighbour
+        parts_x, parts_s = [X], [source]
+        for near, shift in ((X[:, j] < lo + pad, turn), (X[:, j] >= hi - pad, -turn)):
+            copy = X[near].copy()
+            copy[:, j] += shift
+            copy[:, n + j] += shift
+            parts_x.append(copy)
+            parts_s.append(source[near])
+        X, source = np.concatenate(parts_x), np.concatenate(parts_s)
+    return source, X

@@ -29,6 +29,10 @@ class PlannerSettings:
         state bounds OMPL planners are given too).
     input_limit : an edge whose input exceeds the problem's ``u_max`` is rejected
         ("reject") or cut before its first such state ("cut"; the prefix is feasible).
+    extend_distance : a random target farther than this from its nearest tree node is moved
+        towards that node to this distance (RRT's "extend"), so that in higher dimensions
+        targets stay within the data's reach; distances weighted by ``metric_scale``, angle
+        differences taken the short way round. Infinite: the paper's planner.
     """
 
     time_weight: float = 1.0
@@ -42,6 +46,8 @@ class PlannerSettings:
     max_resample: int = 10
     enforce_bounds: bool = True
     input_limit: str = "reject"
+    extend_distance: float = np.inf
+    metric_scale: np.ndarray | None = None
 
 
 def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
@@ -88,6 +94,20 @@ class RRTCoLearn:
         out[k] = np.round(_truncnorm(rng, prediction[k], sigma, s.dt, s.max_duration), s.decimals)
         return out
 
+    def _extend(self, states: np.ndarray, target: np.ndarray, weight: np.ndarray
+                ) -> np.ndarray:
+        """``target`` moved to within ``extend_distance`` of its nearest node (weighted)."""
+        diff = target - states
+        angles = list(self.problem.system.angle_dims)
+        if angles:
+            diff[:, angles] = np.mod(diff[:, angles] + np.pi, 2.0 * np.pi) - np.pi
+        wd = diff * weight
+        d2 = np.einsum("ij,ij->i", wd, wd)
+        i = int(np.argmin(d2))
+        dist = float(np.sqrt(d2[i]))
+        factor = min(1.0, self.settings.extend_distance / dist) if dist > 0 else 1.0
+        return states[i] + factor * diff[i]
+
     def solve(self, termination: TerminationCondition, seed: int | np.random.SeedSequence = 0
               ) -> Plan:
         """Grow the tree until a node reaches the goal region or ``termination`` says stop."""
@@ -107,6 +127,8 @@ class RRTCoLearn:
         lam = np.empty(n)
         z0 = np.empty(2 * n + 1)
         goal_node = -1
+        extend = np.isfinite(s.extend_distance)
+        weight = np.ones(n) if s.metric_scale is None else np.asarray(s.metric_scale)
         iterations = 0
         cpu0 = time.thread_time()
         termination.start()
@@ -118,6 +140,8 @@ class RRTCoLearn:
             target = prob.goal if to_goal else rng.uniform(sys.state_low, sys.state_high)
             m = tree.n_nodes
             states = tree.states[:m]
+            if extend and not to_goal:
+                target = self._extend(states, target, weight)
             diff = states - target
             near = np.flatnonzero(np.einsum("ij,ij->i", diff, diff) <= reach2)
             if near.size == 0:

@@ -8,11 +8,26 @@ from rrtcolearn.systems.base import System
 from rrtcolearn.systems.pendulum import make_pendulum
 
 _REGISTRY: dict[str, Callable[[], System]] = {}
+_CONFIGS: dict[str, dict] = {}
 
 
-def register(name: str, factory: Callable[[], System]) -> None:
-    """Make ``factory`` available as ``make(name)``."""
+def register(name: str, factory: Callable[[], System], config: dict | None = None) -> None:
+    """Make ``factory`` available as ``make(name)``; ``config`` is the system's recommended
+    configuration (nested dict), applied under the user's (see `recommended_config`)."""
     _REGISTRY[name] = factory
+    _CONFIGS[name] = dict(config or {})
+
+
+def recommended_config(name: str) -> dict:
+    """The recommended configuration of system ``name``: the registry's, or for a
+    ``module:attribute`` system its ``defaults["config"]``; {} when there is none (or the
+    system cannot be built: the error is reported where it is built)."""
+    if name in _REGISTRY:
+        return _CONFIGS[name]
+    try:
+        return dict(make(name).defaults.get("config", {}))
+    except Exception:  # reported with its reason by the step that builds the system
+        return {}
 
 
 def list_systems() -> list[str]:
@@ -83,4 +98,4 @@ register("double_integrator", _double_integrator)
 register("cartpole", _cartpole)
 register("acrobot", _acrobot)
 
-__all__ = ["System", "list_systems", "make", "register"]
+__all__ = ["System", "list_systems", "make", "recommended_config", "register"]

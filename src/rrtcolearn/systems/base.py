@@ -35,6 +35,10 @@ class System:
     hamiltonian : ``(x, lambda, u, w) -> H (N,)``.
     dynamics : ``(x (N,n), u (N,m)) -> x' (N,n)``, the plain dynamics (for planners that
         choose inputs directly, and for independent checks).
+    defaults : default query (``start``, ``goal``) and ``config``, the system's recommended
+        configuration (nested dict, applied under the user's configuration).
+    input_scale : (n,) weights of the state coordinates in learning distances (see
+        `metric_scale`); None for the box-derived default.
     """
 
     name: str
@@ -58,6 +62,19 @@ class System:
     dynamics: Callable
     description: str = ""
     defaults: dict = field(default_factory=dict)
+    input_scale: np.ndarray | None = None
+
+    @property
+    def metric_scale(self) -> np.ndarray:
+        """(n,) weights of the state coordinates in every learning distance.
+
+        ``input_scale`` if given, else ``2*pi / (state_high - state_low)``: each coordinate's
+        sampling range counts as much as a full turn of an angle. The pendulum's ranges are
+        both 2*pi, so its weights are exactly 1 and its distances the paper's Euclidean ones.
+        """
+        if self.input_scale is not None:
+            return np.asarray(self.input_scale, dtype=np.float64)
+        return 2.0 * np.pi / (self.state_high - self.state_low)
 
     @property
     def n_states(self) -> int:
