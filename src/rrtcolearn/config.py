@@ -122,6 +122,9 @@ class PlanConfig(_Section):
     extend_distance: float | None = Field(
         None, gt=0, description="move random targets to within this (weighted) distance of "
         "their nearest node; none: the paper's planner")
+    control_samples: int = Field(
+        1, ge=1, le=1000, description="steering draws per iteration, the one ending nearest "
+        "the target kept; 1: the paper's planner")
     input_limit: Literal["reject", "cut"] = Field(
         "reject", description="an edge whose input exceeds u_max is rejected, or cut before it")
 

@@ -219,7 +219,7 @@ class FittedModel:
             decimals=p.decimals, max_duration=self.max_duration, reach=float(reach),
             input_limit=p.input_limit,
             extend_distance=np.inf if p.extend_distance is None else p.extend_distance,
-            metric_scale=self.system.metric_scale)
+            metric_scale=self.system.metric_scale, control_samples=p.control_samples)
 
 
 def fit_functions(system: System, data: Dataset, config: Config) -> LearnedFunctions:

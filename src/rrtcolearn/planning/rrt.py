@@ -33,6 +33,9 @@ class PlannerSettings:
         towards that node to this distance (RRT's "extend"), so that in higher dimensions
         targets stay within the data's reach; distances weighted by ``metric_scale``, angle
         differences taken the short way round. Infinite: the paper's planner.
+    control_samples : steering draws per iteration; with more than one, the draw whose edge
+        comes nearest the target is kept and cut there (OMPL's directed control sampling);
+        one is the paper's planner.
     """
 
     time_weight: float = 1.0
@@ -48,6 +51,7 @@ class PlannerSettings:
     input_limit: str = "reject"
     extend_distance: float = np.inf
     metric_scale: np.ndarray | None = None
+    control_samples: int = 1
 
 
 def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
@@ -108,6 +112,62 @@ class RRTCoLearn:
         factor = min(1.0, self.settings.extend_distance / dist) if dist > 0 else 1.0
         return states[i] + factor * diff[i]
 
+    def _edge(self, rng, x0: np.ndarray, prediction: np.ndarray, sigma: float,
+              lam: np.ndarray, z0: np.ndarray):
+        """One edge from ``x0``: steering parameters drawn around ``prediction``, integrated,
+        checked and cut. (trajectory, parameters, costate, steps, max |u|, reaches the goal)
+        or None when the draw gives no edge."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        n, u_max = sys.n_states, prob.u_max
+        z0[:n], z0[2 * n] = x0, 0.0
+        # redraw parameters whose costate does not exist or whose input already breaks
+        # the limit at the start: such an edge would be rejected without integrating it
+        for _ in range(s.max_resample):
+            params = self._sample_params(rng, prediction, sigma)
+            if sys.costate_from_params_jit(x0, params[:-1], s.time_weight, lam):
+                z0[n : 2 * n] = lam
+                if u_max is None or sys.input_max_abs_jit(z0) <= u_max:
+                    break
+        else:
+            return None
+        steps = max(1, round(params[-1] / s.dt))
+        traj = rollout(sys, z0, s.time_weight, s.dt, steps)
+        # non-finite values propagate to the last RK4 step, so checking it suffices
+        if not np.isfinite(traj[-1]).all():
+            return None
+        path = traj[1:, :n]
+        bounded = sys.bounded_dims
+        if s.enforce_bounds and bounded.size:
+            pb = path[:, bounded]
+            if (pb.min(axis=0) < sys.state_low[bounded]).any() or \
+                    (pb.max(axis=0) > sys.state_high[bounded]).any():
+                return None
+        end = steps
+        if prob.validity:
+            # cut the edge at its last valid state, as OMPL's propagateWhileValid does
+            invalid = np.flatnonzero(~prob.validity(path))
+            if invalid.size:
+                end = int(invalid[0])
+        u_all = np.abs(sys.optimal_control(traj[:, :n], traj[:, n : 2 * n])).max(axis=1)
+        if u_max is not None and s.input_limit == "cut":
+            over = np.flatnonzero(u_all[1:] > u_max)
+            if over.size:
+                end = min(end, int(over[0]))
+        gd = path[:end] - prob.goal
+        hit = np.flatnonzero(np.einsum("ij,ij->i", gd, gd) <= prob.goal_tolerance**2)
+        if hit.size:
+            end = int(hit[0]) + 1
+        if end == 0:
+            return None
+        if end < steps:
+            traj = traj[: end + 1]
+            steps = end
+            params[-1] = steps * s.dt
+        u_abs = float(u_all[: steps + 1].max())
+        if u_max is not None and u_abs > u_max:
+            return None
+        return traj, params, lam.copy(), steps, u_abs, bool(hit.size)
+
     def solve(self, termination: TerminationCondition, seed: int | np.random.SeedSequence = 0
               ) -> Plan:
         """Grow the tree until a node reaches the goal region or ``termination`` says stop."""
@@ -119,11 +179,6 @@ class RRTCoLearn:
         shifts = np.empty((256, n))
         shifts[0] = sys.wrap_shift(prob.start[None])[0]
         reach2 = s.reach * s.reach
-        tol2 = prob.goal_tolerance**2
-        bounded = sys.bounded_dims
-        low_b, high_b = sys.state_low[bounded], sys.state_high[bounded]
-        check_states = bool(prob.validity)
-        u_max = prob.u_max
         lam = np.empty(n)
         z0 = np.empty(2 * n + 1)
         goal_node = -1
@@ -157,57 +212,35 @@ class RRTCoLearn:
                 None, neighbours[best : best + 1])[0]
             x0 = states[parent]
             sigma = s.sigma_goal if to_goal else s.sigma
-            z0[:n], z0[2 * n] = x0, 0.0
-            # redraw parameters whose costate does not exist or whose input already breaks
-            # the limit at the start: such an edge would be rejected without integrating it
-            for _ in range(s.max_resample):
-                params = self._sample_params(rng, prediction, sigma)
-                if sys.costate_from_params_jit(x0, params[:-1], s.time_weight, lam):
-                    z0[n : 2 * n] = lam
-                    if u_max is None or sys.input_max_abs_jit(z0) <= u_max:
-                        break
-            else:
-                continue
-            steps = max(1, round(params[-1] / s.dt))
-            traj = rollout(sys, z0, s.time_weight, s.dt, steps)
-            # non-finite values propagate to the last RK4 step, so checking it suffices
-            if not np.isfinite(traj[-1]).all():
-                continue
-            path = traj[1:, :n]
-            if s.enforce_bounds and bounded.size:
-                pb = path[:, bounded]
-                if (pb.min(axis=0) < low_b).any() or (pb.max(axis=0) > high_b).any():
+            edge, best_d2 = None, np.inf
+            for _ in range(s.control_samples):
+                cand = self._edge(rng, x0, prediction, sigma, lam, z0)
+                if cand is None:
                     continue
-            end = steps
-            if check_states:
-                # cut the edge at its last valid state, as OMPL's propagateWhileValid does
-                invalid = np.flatnonzero(~prob.validity(path))
-                if invalid.size:
-                    end = int(invalid[0])
-            u_all = np.abs(sys.optimal_control(traj[:, :n], traj[:, n : 2 * n])).max(axis=1)
-            if u_max is not None and s.input_limit == "cut":
-                over = np.flatnonzero(u_all[1:] > u_max)
-                if over.size:
-                    end = min(end, int(over[0]))
-            gd = path[:end] - prob.goal
-            hit = np.flatnonzero(np.einsum("ij,ij->i", gd, gd) <= tol2)
-            if hit.size:
-                end = int(hit[0]) + 1
-            if end == 0:
+                if s.control_samples == 1 or cand[5]:  # the paper's single draw, or a goal hit
+                    edge = cand
+                    break
+                # OMPL's directed control sampling: keep the draw ending nearest the target,
+                # cut at its state nearest the target
+                wd = (cand[0][1:, :n] - target) * weight
+                d2 = np.einsum("ij,ij->i", wd, wd)
+                k = int(np.argmin(d2))
+                if d2[k] < best_d2:
+                    best_d2 = float(d2[k])
+                    traj_c, params_c = cand[0][: k + 2], cand[1].copy()
+                    params_c[-1] = (k + 1) * s.dt
+                    u_c = float(np.abs(sys.optimal_control(
+                        traj_c[:, :n], traj_c[:, n : 2 * n])).max())
+                    edge = (traj_c, params_c, cand[2], k + 1, u_c, False)
+            if edge is None:
                 continue
-            if end < steps:
-                traj = traj[: end + 1]
-                steps = end
-                params[-1] = steps * s.dt
-            u_abs = float(u_all[: steps + 1].max())
-            if u_max is not None and u_abs > u_max:
-                continue
-            node = tree.add(traj[-1, :n], parent, lam, params[:-1], steps * s.dt,
+            traj, params, lam_e, steps, u_abs, hit = edge
+            node = tree.add(traj[-1, :n], parent, lam_e, params[:-1], steps * s.dt,
                             traj[-1, 2 * n], traj[:, :n], u_abs)
             if node == shifts.shape[0]:
                 shifts = np.concatenate([shifts, np.empty_like(shifts)])
             shifts[node] = sys.wrap_shift(traj[-1:, :n])[0]
-            if hit.size:
+            if hit:
                 goal_node = node
         cpu = time.thread_time() - cpu0
         wall = termination.elapsed()
