@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import pickle
 import sys
 import time
 from pathlib import Path
@@ -22,19 +23,21 @@ from rrtcolearn.systems.double_integrator import (
     optimal_arrival,
     optimal_cost,
 )
-from rrtcolearn.systems.symbolic import SymbolicSystem, build_system
+from rrtcolearn.systems.pendulum import make_pendulum
+from rrtcolearn.systems.symbolic import CostateParametrisation, SymbolicSystem, build_system
 
 KERNELS = ("rhs", "input_max_abs_jit", "costate_from_params_jit", "rollout_jit",
            "rollout_batch_jit")
 
 
-def symbolic_pendulum(**kwargs) -> SymbolicSystem:
-    """The paper's pendulum through the generic path (not registered)."""
+def direction_pendulum(**kwargs) -> SymbolicSystem:
+    """The pendulum's equations with the default (costate direction) parametrisation instead
+    of the registered pendulum's phi (not registered)."""
     theta, omega, u = sympy.symbols("theta omega u")
     return build_system(
-        "pendulum_symbolic", [theta, omega], [u], [omega, sympy.sin(theta)], [[0], [1]], [[1]],
-        state_low=[-1.5 * np.pi, -np.pi], state_high=[0.5 * np.pi, np.pi], angle_dims=[0],
-        **kwargs)
+        "pendulum_direction", [theta, omega], [u], [omega, sympy.sin(theta)], [[0], [1]],
+        [[1]], state_low=[-1.5 * np.pi, -np.pi], state_high=[0.5 * np.pi, np.pi],
+        angle_dims=[0], **kwargs)
 
 
 def warm_up(system) -> dict[str, float]:
@@ -74,9 +77,9 @@ def compile_times(cache_dir) -> dict[str, dict[str, float]]:
 
 
 @pytest.fixture(scope="module")
-def sym_pendulum(cache_dir, compile_times) -> SymbolicSystem:
-    system = symbolic_pendulum()
-    compile_times["pendulum_symbolic"] = warm_up(system)
+def dir_pendulum(cache_dir, compile_times) -> SymbolicSystem:
+    system = direction_pendulum()
+    compile_times["pendulum_direction"] = warm_up(system)
     return system
 
 
@@ -90,10 +93,10 @@ def double_integrator(cache_dir, compile_times) -> SymbolicSystem:
 # --------------------------------------------------------------------------- check_system
 
 
-@pytest.mark.parametrize("which", ["pendulum", "pendulum_symbolic", "double_integrator"])
+@pytest.mark.parametrize("which", ["pendulum", "pendulum_direction", "double_integrator"])
 def test_check_system_passes(which, request):
     system = {"pendulum": lambda: make("pendulum"),
-              "pendulum_symbolic": lambda: request.getfixturevalue("sym_pendulum"),
+              "pendulum_direction": lambda: request.getfixturevalue("dir_pendulum"),
               "double_integrator": lambda: request.getfixturevalue("double_integrator")}[which]()
     check_system(system)
     check_system(system, n_samples=100, seed=1, time_weight=0.3)
@@ -168,36 +171,49 @@ def test_invalid_definitions_are_rejected(cache_dir):
 # --------------------------------------------------------------------------- pendulum
 
 
-def test_symbolic_pendulum_matches_hand_written(sym_pendulum):
-    hand = make("pendulum")
+def test_pendulum_parametrisation_is_the_authors(dir_pendulum, cache_dir):
+    """The registered pendulum is the generic system with its own phi parametrisation; the
+    generated code does not depend on the parametrisation (its equations against the
+    hand-derived ones: test_pmp)."""
+    pend = make_pendulum()  # built in this module's cache, like dir_pendulum
+    assert pend.source == dir_pendulum.source
+    assert pend.rhs is dir_pendulum.rhs and pend.rollout_batch_jit is dir_pendulum.rollout_batch_jit
+    assert pend.param_names == ("phi",) and pend.param_circular == (True,)
+    assert dir_pendulum.param_names == ("d_theta", "d_omega")
+    assert pend.costate_from_params is not dir_pendulum.costate_from_params
+    # costates of either parametrisation lie on H* = 0
     rng = np.random.default_rng(0)
-    for _ in range(200):
-        z = rng.normal(scale=3.0, size=5)
-        w = rng.uniform(0.1, 2.0)
-        a, b = np.empty(5), np.empty(5)
-        hand.rhs(z, w, a)
-        sym_pendulum.rhs(z, w, b)
-        np.testing.assert_allclose(b, a, rtol=0, atol=1e-12)
-        assert sym_pendulum.input_max_abs_jit(z) == hand.input_max_abs_jit(z)
-    x = rng.uniform(hand.state_low, hand.state_high, (500, 2))
-    lam = rng.normal(size=(500, 2))
-    u = rng.normal(size=(500, 1))
-    np.testing.assert_allclose(sym_pendulum.optimal_control(x, lam),
-                               hand.optimal_control(x, lam), atol=1e-14)
-    np.testing.assert_allclose(sym_pendulum.hamiltonian(x, lam, u, 0.7),
-                               hand.hamiltonian(x, lam, u, 0.7), atol=1e-12)
-    np.testing.assert_allclose(sym_pendulum.dynamics(x, u), hand.dynamics(x, u), atol=1e-14)
-    # costates on the symbolic pendulum's H* = 0 satisfy the hand-written Hamiltonian
+    x = rng.uniform(pend.state_low, pend.state_high, (500, 2))
     for w in (1.0, 0.3):
-        p = rng.uniform(sym_pendulum.param_low, sym_pendulum.param_high, (500, 2))
-        lam, valid = sym_pendulum.costate_from_params(x, p, w)
-        assert valid.mean() > 0.99  # invalid only when d_omega ~ 0 and d.a(x) >= 0
-        lv, xv = lam[valid], x[valid]
-        h = hand.hamiltonian(xv, lv, hand.optimal_control(xv, lv), w)
-        assert np.all(np.abs(h) <= 1e-9 * (1.0 + np.sum(lv * lv, axis=1)))
+        for system in (pend, dir_pendulum):
+            p = rng.uniform(system.param_low, system.param_high, (500, system.n_params))
+            lam, valid = system.costate_from_params(x, p, w)
+            assert valid.mean() > 0.5
+            lv, xv = lam[valid], x[valid]
+            h = pend.hamiltonian(xv, lv, pend.optimal_control(xv, lv), w)
+            assert np.all(np.abs(h) <= 1e-9 * (1.0 + np.sum(lv * lv, axis=1)))
         # a direction and any positive multiple of it give the same costate
-        lam2, _ = sym_pendulum.costate_from_params(x, 0.37 * p, w)
-        np.testing.assert_allclose(lam2[valid], lv, rtol=1e-12)
+        p = rng.uniform(-1.0, 1.0, (500, 2))
+        lam, valid = dir_pendulum.costate_from_params(x, p, w)
+        assert valid.mean() > 0.99  # invalid only when d_omega ~ 0 and d.a(x) >= 0
+        lam2, _ = dir_pendulum.costate_from_params(x, 0.37 * p, w)
+        np.testing.assert_allclose(lam2[valid], lam[valid], rtol=1e-12)
+
+
+def test_costate_parametrisation_is_validated():
+    pend = make("pendulum")
+    good = dict(names=("phi",), low=(0.0,), high=(1.0,), circular=(True,),
+                from_params=pend.costate_from_params,
+                from_params_jit=pend.costate_from_params_jit)
+    cp = CostateParametrisation(**(good | {"low": np.array([0.0]), "names": ["phi"]}))
+    assert cp.low == (0.0,) and cp.names == ("phi",)
+    for change, match in (({"names": ()}, "at least one"),
+                          ({"high": (1.0, 2.0)}, "entries"),
+                          ({"high": (0.0,)}, "low < high"),
+                          ({"low": (-np.inf,)}, "low < high"),
+                          ({"from_params_jit": None}, "callable")):
+        with pytest.raises(ValueError, match=match):
+            CostateParametrisation(**(good | change))
 
 
 # --------------------------------------------------------------------------- double integrator
@@ -267,27 +283,28 @@ def test_indirect_method_matches_oracle(double_integrator, w):
 # --------------------------------------------------------------------------- code generation
 
 
-def test_generated_modules_are_cached(cache_dir, sym_pendulum, compile_times):
+def test_generated_modules_are_cached(cache_dir, dir_pendulum, compile_times):
+    sym_pendulum = dir_pendulum
     path = Path(sys.modules[sym_pendulum.rhs.py_func.__module__].__file__)
     assert path.parent == cache_dir / "systems"
     assert path.name == f"rrtcolearn_sys_{hashlib.sha256(path.read_bytes()).hexdigest()}.py"
     stat = path.stat()
-    again = symbolic_pendulum()  # same process: the module is reused
+    again = direction_pendulum()  # same process: the module is reused
     assert again.rhs is sym_pendulum.rhs
     # as a new process would: import again from the file and numba's on-disk cache
     del sys.modules[path.stem]
-    fresh = symbolic_pendulum()
+    fresh = direction_pendulum()
     assert fresh.rhs is not sym_pendulum.rhs
     load_times = warm_up(fresh)
     new = path.stat()
     assert (new.st_mtime_ns, new.st_ino) == (stat.st_mtime_ns, stat.st_ino)  # not rewritten
     assert sum(fresh.rhs.stats.cache_hits.values()) == 1
     assert sum(fresh.rollout_batch_jit.stats.cache_hits.values()) == 1
-    cold = compile_times["pendulum_symbolic"]
+    cold = compile_times["pendulum_direction"]
     assert sum(cold.values()) < 60.0, cold  # first build compiles all kernels
     assert sum(load_times.values()) < 5.0, load_times
     # names are not part of the code; another definition gets another file
-    renamed = symbolic_pendulum(state_names=("th", "om"))
+    renamed = direction_pendulum(state_names=("th", "om"))
     assert renamed.rhs is fresh.rhs
     files = set((cache_dir / "systems").glob("rrtcolearn_sys_*.py"))
     theta, omega, u = sympy.symbols("theta omega u")
@@ -299,20 +316,35 @@ def test_generated_modules_are_cached(cache_dir, sym_pendulum, compile_times):
     # a corrupted file is rewritten
     path.write_text("corrupted")
     del sys.modules[path.stem]
-    repaired = symbolic_pendulum()
+    repaired = direction_pendulum()
     assert path.read_text() == repaired.source == sym_pendulum.source
 
 
-def test_symbolic_system_pickles_for_spawned_workers(double_integrator):
-    """Spawned workers (parallel.py) rebuild the generated module from the pickled source."""
+@pytest.mark.parametrize("which", ["double_integrator", "pendulum"])
+def test_symbolic_system_pickles_for_spawned_workers(which, cache_dir):
+    """Spawned workers (parallel.py) rebuild the generated module from the pickled source; the
+    pendulum's own costate functions travel by reference."""
     from rrtcolearn.integrate import rollout
     from rrtcolearn.parallel import ExecutionSettings, map_tasks
 
-    x0 = np.array([[0.5, -1.0], [-1.5, 0.3]])
-    lam, valid = double_integrator.costate_from_params(x0, np.array([[1.0, 0.2], [-0.3, 1]]), 1.0)
-    assert valid.all()
-    tasks = [np.r_[x0[i], lam[i], 0.0] for i in range(2)]
-    fn = functools.partial(rollout, double_integrator, w=1.0, dt=0.01, n_steps=50)
+    system = make(which)
+    again = pickle.loads(pickle.dumps(system))
+    for name in ("rhs", "rollout_jit", "rollout_batch_jit", "costate_from_params",
+                 "costate_from_params_jit", "optimal_control", "hamiltonian", "dynamics"):
+        assert getattr(again, name) is getattr(system, name), name
+    assert again.param_names == system.param_names
+    rng = np.random.default_rng(3)
+    x0 = rng.uniform(system.state_low, system.state_high, (20, 2))
+    p = rng.uniform(system.param_low, system.param_high, (20, system.n_params))
+    lam, valid = system.costate_from_params(x0, p, 1.0)
+    out = np.empty(2)
+    for i in range(20):
+        assert again.costate_from_params_jit(x0[i], p[i], 1.0, out) == valid[i]
+    tasks = [np.r_[x0[i], lam[i], 0.0] for i in np.flatnonzero(valid)[:2]]
+    # also after the generated module was imported anew (as from another cache directory)
+    del sys.modules[system.rhs.py_func.__module__]
+    assert make(which).rhs is not system.rhs
+    fn = functools.partial(rollout, system, w=1.0, dt=0.01, n_steps=50)
     spawned = map_tasks(fn, tasks, ExecutionSettings("processes", 1))
     for z0, traj in zip(tasks, spawned, strict=True):
         np.testing.assert_array_equal(traj, fn(z0))

@@ -6,6 +6,9 @@ C = w + u^2/2. Pontryagin: u* = -lambda_omega, and with H* = w + l_th*omega + l_
 
     theta' = omega, omega' = sin(theta) - l_om, l_th' = -l_om*cos(theta), l_om' = -l_th.
 
+These are derived and compiled by the generic path (`rrtcolearn.systems.symbolic`) from the
+sympy definition in `make_pendulum`; only the costate parametrisation is written here.
+
 Costate parametrisation on H* = 0 (the paper's printed formula is wrong for its own
 Hamiltonian; solving H* = 0 for l_om gives):
 
@@ -18,31 +21,15 @@ with phi in (-pi/2, 3pi/2); a negative square-root argument means no costate exi
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
 
-from rrtcolearn.integrate import define_kernels
-from rrtcolearn.systems.base import System
+if TYPE_CHECKING:
+    from rrtcolearn.systems.symbolic import SymbolicSystem
 
-
-@numba.njit(cache=True, fastmath=False)
-def _rhs(z, w, out):
-    theta, omega, l_th, l_om = z[0], z[1], z[2], z[3]
-    out[0] = omega
-    out[1] = math.sin(theta) - l_om
-    out[2] = -l_om * math.cos(theta)
-    out[3] = -l_th
-    out[4] = w + 0.5 * l_om * l_om
-
-
-@numba.njit(cache=True)
-def input_max_abs(z):
-    return abs(z[3])  # u* = -lambda_omega
-
-
-rhs = _rhs
-define_kernels(globals())  # rollout_jit, rollout_batch_jit
+__all__ = ["costate_from_params", "costate_from_params_jit", "make_pendulum"]
 
 
 def costate_from_params(x: np.ndarray, p: np.ndarray, w: float) -> tuple[np.ndarray, np.ndarray]:
@@ -58,7 +45,8 @@ def costate_from_params(x: np.ndarray, p: np.ndarray, w: float) -> tuple[np.ndar
 
 
 @numba.njit(cache=True)
-def _costate_from_params_jit(x, p, w, out):
+def costate_from_params_jit(x, p, w, out):
+    """Scalar `costate_from_params` for one state: writes ``out`` (2,), False if none exists."""
     s = math.sin(x[0])
     l_th = math.tan(p[0])
     arg = s * s + 2.0 * (w + l_th * x[1])
@@ -69,45 +57,36 @@ def _costate_from_params_jit(x, p, w, out):
     return True
 
 
-def optimal_control(x: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """u* = argmin_u H = -lambda_omega, shape (N, 1)."""
-    return -lam[:, 1:2]
-
-
-def hamiltonian(x: np.ndarray, lam: np.ndarray, u: np.ndarray, w: float) -> np.ndarray:
-    """H = w + u^2/2 + l_th*omega + l_om*(sin(theta) + u), shape (N,)."""
-    u0 = u[:, 0]
-    return w + 0.5 * u0 * u0 + lam[:, 0] * x[:, 1] + lam[:, 1] * (np.sin(x[:, 0]) + u0)
-
-
-def dynamics(x: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """f(x, u) = (omega, sin(theta) + u), shape (N, 2)."""
-    return np.stack([x[:, 1], np.sin(x[:, 0]) + u[:, 0]], axis=1)
-
-
-def make_pendulum() -> System:
+def make_pendulum() -> SymbolicSystem:
     """The paper's pendulum: theta0 ~ U(-3pi/2, pi/2), omega0 ~ U(-pi, pi),
     phi ~ U(-pi/2, 3pi/2)."""
-    return System(
-        name="pendulum",
+    # imported on use: sympy takes a while to import, and the registry imports this module
+    import sympy
+
+    from rrtcolearn.systems.symbolic import CostateParametrisation, build_system
+
+    theta, omega, u = sympy.symbols("theta omega u", real=True)
+    phi = CostateParametrisation(
+        names=("phi",),
+        low=(-0.5 * np.pi,),
+        high=(1.5 * np.pi,),
+        circular=(True,),
+        from_params=costate_from_params,
+        from_params_jit=costate_from_params_jit,
+    )
+    return build_system(
+        "pendulum",
+        states=[theta, omega],
+        inputs=[u],
+        drift=[omega, sympy.sin(theta)],
+        input_matrix=[[0], [1]],
+        input_weight=[[1]],
+        state_low=[-1.5 * np.pi, -np.pi],
+        state_high=[0.5 * np.pi, np.pi],
+        angle_dims=[0],
         state_names=("theta", "omega"),
         input_names=("torque",),
-        state_low=np.array([-1.5 * np.pi, -np.pi]),
-        state_high=np.array([0.5 * np.pi, np.pi]),
-        angle_dims=(0,),
-        param_names=("phi",),
-        param_low=np.array([-0.5 * np.pi]),
-        param_high=np.array([1.5 * np.pi]),
-        param_circular=(True,),
-        rhs=_rhs,
-        rollout_jit=rollout_jit,  # noqa: F821 - defined by define_kernels
-        rollout_batch_jit=rollout_batch_jit,  # noqa: F821
-        input_max_abs_jit=input_max_abs,
-        costate_from_params=costate_from_params,
-        costate_from_params_jit=_costate_from_params_jit,
-        optimal_control=optimal_control,
-        hamiltonian=hamiltonian,
-        dynamics=dynamics,
         description="Pendulum swing-up, x = (theta, omega), f = (omega, sin(theta) + u)",
         defaults={"start": [-math.pi, 0.0], "goal": [0.0, 0.0]},
+        costate_parametrisation=phi,
     )

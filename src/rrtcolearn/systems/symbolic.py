@@ -30,6 +30,13 @@ sphere (no poles, no wrap-around), so a k-NN learner can average neighbouring pa
 Uniform sampling of the box gives directions that are denser towards the box corners; every
 direction is still reachable.
 
+A system author may replace the direction by their own parametrisation: a
+`CostateParametrisation` (parameter names, sampling box, which are circular, a vectorised numpy
+``from_params(x, p, w) -> (lambda, valid)`` and a scalar ``numba.njit(cache=True)``
+``from_params_jit(x, p, w, out) -> bool``, both module-level functions of the author's module so
+they pickle by reference), e.g. the pendulum's angle phi (`rrtcolearn.systems.pendulum`). The
+generated module does not depend on the parametrisation; only the `System`'s fields do.
+
 Cache directory: ``$RRTCOLEARN_CACHE/systems`` if that variable is set, else
 ``$XDG_CACHE_HOME/rrtcolearn/systems`` or ``~/.cache/rrtcolearn/systems``.
 """
@@ -42,7 +49,7 @@ import os
 import sys
 import tempfile
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from types import ModuleType
@@ -56,6 +63,7 @@ from sympy.printing.pycode import PythonCodePrinter
 from rrtcolearn.systems.base import System
 
 __all__ = [
+    "CostateParametrisation",
     "Derivation",
     "SymbolicSystem",
     "build_system",
@@ -465,8 +473,59 @@ _GENERATED = {
 
 
 @dataclass(frozen=True)
+class CostateParametrisation:
+    """A system author's costate parametrisation, used instead of the costate direction.
+
+    names, low, high : the k steering parameters and their sampling box (low < high, finite).
+    circular : which parameters live on a circle of period ``high - low``.
+    from_params : ``(x (N,n), p (N,k), w) -> (lambda (N,n), valid (N,))``, vectorised numpy;
+        valid costates must satisfy H* = 0.
+    from_params_jit : ``(x (n,), p (k,), w, out (n,)) -> bool``, the scalar version, compiled
+        with ``numba.njit(cache=True)``; writes the costate into ``out``.
+
+    Both functions should be module-level functions of an importable module, so that the
+    system pickles (by reference) for spawned workers.
+    """
+
+    names: tuple[str, ...]
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    circular: tuple[bool, ...]
+    from_params: Callable
+    from_params_jit: Callable
+
+    def __post_init__(self) -> None:
+        names = tuple(str(v) for v in self.names)
+        low = tuple(float(v) for v in np.ravel(self.low))
+        high = tuple(float(v) for v in np.ravel(self.high))
+        circular = tuple(bool(v) for v in self.circular)
+        k = len(names)
+        if k == 0 or len(set(names)) != k:
+            raise ValueError("a costate parametrisation needs at least one parameter name, "
+                             f"all distinct, got {names}")
+        if not len(low) == len(high) == len(circular) == k:
+            raise ValueError(f"low, high and circular need {k} entries (one per parameter)")
+        lo, hi = np.array(low), np.array(high)
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo < hi)):
+            raise ValueError("the parameter box needs finite bounds with low < high")
+        if not (callable(self.from_params) and callable(self.from_params_jit)):
+            raise ValueError("from_params and from_params_jit must be callable")
+        for name, value in (("names", names), ("low", low), ("high", high),
+                            ("circular", circular)):
+            object.__setattr__(self, name, value)
+
+
+@dataclass(frozen=True)
 class _GeneratedRef:
     attr: str
+
+
+def _is_generated(value: Any, modname: str, attr: str) -> bool:
+    """Whether ``value`` is ``attr`` of the generated module ``modname`` (by name, not by
+    identity: the module object in ``sys.modules`` may have been re-imported meanwhile)."""
+    func = getattr(value, "py_func", value)  # numba dispatchers wrap the Python function
+    return (getattr(func, "__module__", None) == modname
+            and getattr(func, "__name__", None) == attr)
 
 
 def _rebuild(cls: type, source: str, state: dict) -> SymbolicSystem:
@@ -490,15 +549,12 @@ class SymbolicSystem(System):
 
     def __reduce__(self):
         digest = hashlib.sha256(self.source.encode("utf-8")).hexdigest()
-        module = None
-        if self.source:
-            module = (sys.modules.get(_MODULE_PREFIX + digest)
-                      or load_generated_module(self.source))
+        modname = _MODULE_PREFIX + digest
         state = {}
         for f in fields(self):
             value = getattr(self, f.name)
             attr = _GENERATED.get(f.name)
-            if attr is not None and value is getattr(module, attr, None):
+            if self.source and attr is not None and _is_generated(value, modname, attr):
                 value = _GeneratedRef(attr)
             state[f.name] = value
         return _rebuild, (type(self), self.source, state)
@@ -521,6 +577,7 @@ def build_system(
     description: str = "",
     defaults: dict | None = None,
     cache_dir: str | os.PathLike | None = None,
+    costate_parametrisation: CostateParametrisation | None = None,
 ) -> SymbolicSystem:
     """Derive, generate, compile (lazily, cached) and wrap a system ``x' = a(x) + B(x) u``.
 
@@ -528,7 +585,8 @@ def build_system(
     identity by default); ``state_low``/``state_high`` is the start-state sampling box and
     ``angle_dims`` the coordinates with period 2*pi (the definition must be periodic in them).
     Names default to the symbols' names. The steering parameters are the costate direction's
-    components ``d_<state>`` in [-1, 1] (module docstring).
+    components ``d_<state>`` in [-1, 1] unless ``costate_parametrisation`` gives the author's
+    own (module docstring).
     """
     der = derive(states, inputs, drift, input_matrix, input_weight, parameters)
     n, m = der.n, der.m
@@ -547,6 +605,17 @@ def build_system(
         raise ValueError("state_names / input_names do not match the numbers of symbols")
     source = generate_source(der)
     module = load_generated_module(source, cache_dir)
+    cp = costate_parametrisation
+    if cp is None:
+        params = dict(param_names=tuple(f"d_{s}" for s in s_names), param_low=-np.ones(n),
+                      param_high=np.ones(n), param_circular=(False,) * n,
+                      costate_from_params=module.costate_from_params,
+                      costate_from_params_jit=module.costate_from_params_jit)
+    else:
+        params = dict(param_names=cp.names, param_low=np.array(cp.low),
+                      param_high=np.array(cp.high), param_circular=cp.circular,
+                      costate_from_params=cp.from_params,
+                      costate_from_params_jit=cp.from_params_jit)
     return SymbolicSystem(
         name=name,
         state_names=s_names,
@@ -554,16 +623,11 @@ def build_system(
         state_low=low,
         state_high=high,
         angle_dims=angles,
-        param_names=tuple(f"d_{s}" for s in s_names),
-        param_low=-np.ones(n),
-        param_high=np.ones(n),
-        param_circular=(False,) * n,
+        **params,
         rhs=module.rhs,
         rollout_jit=module.rollout_jit,
         rollout_batch_jit=module.rollout_batch_jit,
         input_max_abs_jit=module.input_max_abs,
-        costate_from_params=module.costate_from_params,
-        costate_from_params_jit=module.costate_from_params_jit,
         optimal_control=module.optimal_control,
         hamiltonian=module.hamiltonian,
         dynamics=module.dynamics,
