@@ -125,6 +125,9 @@ class PlanConfig(_Section):
     control_samples: int = Field(
         1, ge=1, le=1000, description="steering draws per iteration, the one ending nearest "
         "the target kept; 1: the paper's planner")
+    max_candidates: int | None = Field(
+        None, ge=1, description="query J for only this many nodes nearest the target "
+        "(weighted distance); none: every node within reach, the paper's planner")
     input_limit: Literal["reject", "cut"] = Field(
         "reject", description="an edge whose input exceeds u_max is rejected, or cut before it")
 

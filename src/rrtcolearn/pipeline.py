@@ -219,7 +219,8 @@ class FittedModel:
             decimals=p.decimals, max_duration=self.max_duration, reach=float(reach),
             input_limit=p.input_limit,
             extend_distance=np.inf if p.extend_distance is None else p.extend_distance,
-            metric_scale=self.system.metric_scale, control_samples=p.control_samples)
+            metric_scale=self.system.metric_scale, control_samples=p.control_samples,
+            max_candidates=2**62 if p.max_candidates is None else p.max_candidates)
 
 
 def fit_functions(system: System, data: Dataset, config: Config) -> LearnedFunctions:

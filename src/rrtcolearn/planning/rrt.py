@@ -36,6 +36,8 @@ class PlannerSettings:
     control_samples : steering draws per iteration; with more than one, the draw whose edge
         comes nearest the target is kept and cut there (OMPL's directed control sampling);
         one is the paper's planner.
+    max_candidates : only this many tree nodes nearest the target (weighted distance) are
+        queried for J; unlimited in the paper's planner.
     """
 
     time_weight: float = 1.0
@@ -52,6 +54,7 @@ class PlannerSettings:
     extend_distance: float = np.inf
     metric_scale: np.ndarray | None = None
     control_samples: int = 1
+    max_candidates: int = 2**62
 
 
 def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
@@ -201,6 +204,11 @@ class RRTCoLearn:
             near = np.flatnonzero(np.einsum("ij,ij->i", diff, diff) <= reach2)
             if near.size == 0:
                 continue
+            if near.size > s.max_candidates:
+                # the nearest (weighted) nodes only: bounds the neighbour queries per iteration
+                wd = diff[near] * weight
+                keep = np.argpartition(np.einsum("ij,ij->i", wd, wd), s.max_candidates - 1)
+                near = np.sort(near[keep[: s.max_candidates]])
             sh = shifts[near]
             query = np.concatenate([states[near] + sh, target + sh], axis=1)
             rows, cost, neighbours = self.model.query_valid(query)

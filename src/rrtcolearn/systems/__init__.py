@@ -93,9 +93,31 @@ def _acrobot() -> System:
     return make_acrobot()
 
 
+# Recommended configurations: the pendulum's are the package defaults (the paper's); the
+# others were chosen by measurement (README "Other systems", bench/systems_bench.py).
+_HIGHER_DIMENSIONAL_PLAN = {
+    # steering parameters are costate directions in [-1, 1]: the pendulum's sigmas (pi/4 and
+    # pi/2 on a 2*pi range) scaled to that range would be 0.25 and 0.5
+    "sigma": 0.25, "sigma_goal": 0.5,
+    "control_samples": 16, "max_candidates": 8, "extend_distance": 0.5,
+    "goal_tolerance": 0.3, "time_limit": 60.0,
+}
 register("pendulum", make_pendulum)
-register("double_integrator", _double_integrator)
-register("cartpole", _cartpole)
-register("acrobot", _acrobot)
+register("double_integrator", _double_integrator, {
+    "name": "double-integrator",
+    "generate": {"n_simulations": 100_000},
+})
+register("cartpole", _cartpole, {
+    "name": "cartpole-swingup",
+    "generate": {"n_simulations": 100_000, "max_cost": 50.0},
+    "learn": {"validity_threshold": 2.0},
+    "plan": _HIGHER_DIMENSIONAL_PLAN,
+})
+register("acrobot", _acrobot, {
+    "name": "acrobot-swingup",
+    "generate": {"n_simulations": 100_000, "max_cost": 50.0},
+    "learn": {"validity_threshold": 2.0},
+    "plan": _HIGHER_DIMENSIONAL_PLAN,
+})
 
 __all__ = ["System", "list_systems", "make", "recommended_config", "register"]

@@ -1,0 +1,107 @@
+"""Per-system figures: offline time and dataset size, learned-J error, steering MSE, planning.
+
+Every shipped system runs through the same pipeline with its recommended configuration
+(`rrtcolearn.systems.recommended_config`): generate, clean, fit in a temporary run directory,
+then held-out errors on a fresh dataset (another seed), the double integrator's J also
+against its exact cost-to-go, and ``--queries`` seeded plans of the system's standard query.
+
+    python bench/systems_bench.py [--queries 50] [--time-limit S] [--systems a,b]
+
+``--time-limit`` overrides each system's configured ``plan.time_limit`` (the issue's target
+is success within 60 s; `make bench` uses shorter limits to stay quick, which can only
+lower the success rate). Prints a table and, last, one JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+
+import numpy as np
+
+from rrtcolearn import pipeline
+from rrtcolearn.config import load_config
+from rrtcolearn.data.generate import generate_data
+from rrtcolearn.evaluate import held_out_errors
+
+SYSTEMS = ("pendulum", "double_integrator", "cartpole", "acrobot")
+TARGETS = {"double_integrator": 1.0, "cartpole": 1.0, "acrobot": 0.9}
+
+
+def bench_system(name: str, queries: int, time_limit: float | None) -> dict:
+    cfg = load_config(None, [f'system.name="{name}"'])
+    w, dt = cfg.system.time_weight, cfg.generate.dt
+    row: dict = {"system": name}
+    with tempfile.TemporaryDirectory() as run_dir:
+        t0 = time.process_time()
+        data, stats = pipeline.generate(cfg, run_dir)
+        gen_cpu = time.process_time() - t0 + stats.worker_cpu_s
+        t0 = time.process_time()
+        cleaned, _ = pipeline.clean(cfg, run_dir)
+        clean_cpu = time.process_time() - t0
+        t0 = time.process_time()
+        model = pipeline.fit(cfg, run_dir)
+        fit_cpu = time.process_time() - t0
+    row.update(simulations=cfg.generate.n_simulations, raw_points=len(data),
+               kept_points=len(cleaned), offline_cpu_s=round(gen_cpu + clean_cpu + fit_cpu, 2))
+    system = model.system
+    held, _ = generate_data(system, 10_000 + cfg.seed, 2000, time_weight=w, dt=dt,
+                            max_cost=cfg.generate.max_cost,
+                            max_state_distance=cfg.generate.max_state_distance,
+                            max_duration=cfg.generate.max_duration)
+    err = held_out_errors(system, model.functions, held, n_queries=1000, time_weight=w, dt=dt)
+    row.update(heldout_accepted=round(err.accepted_fraction, 3),
+               j_rel_error_median=round(float(np.median(err.cost_rel_error)), 4),
+               steer_mse_median=round(float(np.median(err.steer_mse)), 5))
+    if name == "double_integrator":
+        from rrtcolearn.systems.double_integrator import optimal_cost
+
+        X = held.inputs
+        cost, _, valid = model.functions.query(X)
+        oracle = optimal_cost(X[valid, :2], X[valid, 2:], w)
+        ok = np.isfinite(oracle) & (oracle > 0)
+        row["j_oracle_rel_error_median"] = round(float(np.median(
+            np.abs(cost[valid][ok] - oracle[ok]) / oracle[ok])), 4)
+        # how optimal the indirect data themselves are (local optima the cleaning removes)
+        data_ok = np.isfinite(optimal_cost(X[:, :2], X[:, 2:], w))
+        row["data_oracle_rel_error_median"] = round(float(np.median(
+            np.abs(held.cost[data_ok] - optimal_cost(X[data_ok, :2], X[data_ok, 2:], w))
+            / held.cost[data_ok])), 5)
+    start, goal = pipeline.query_states(cfg, system)
+    limit = time_limit if time_limit is not None else cfg.plan.time_limit
+    pipeline.plan(model, start, goal, cfg.plan.goal_tolerance, seed=10_000,
+                  max_iterations=50)  # warm-up: compile and load kernels
+    plans = [pipeline.plan(model, start, goal, cfg.plan.goal_tolerance, seed=s,
+                           time_limit=limit) for s in range(queries)]
+    row.update(goal_tolerance=cfg.plan.goal_tolerance, time_limit_s=limit, queries=queries,
+               success_rate=round(float(np.mean([p.solved for p in plans])), 3),
+               plan_cpu_s_median=round(float(np.median([p.planning_cpu_s for p in plans])), 4),
+               plan_nodes_median=float(np.median([p.nodes for p in plans])))
+    solved = [p for p in plans if p.solved]
+    row["plan_cost_median"] = round(float(np.median([p.path_cost for p in solved])), 3) \
+        if solved else None
+    target = TARGETS.get(name)
+    if target is not None:
+        row["success_target"] = target
+        row["success_target_met"] = row["success_rate"] >= target
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--queries", type=int, default=50)
+    ap.add_argument("--time-limit", type=float, default=None)
+    ap.add_argument("--systems", default=",".join(SYSTEMS))
+    args = ap.parse_args()
+    rows = []
+    for name in args.systems.split(","):
+        row = bench_system(name, args.queries, args.time_limit)
+        rows.append(row)
+        print(" ".join(f"{k}={v}" for k, v in row.items()), flush=True)
+    print(json.dumps({"systems": rows}))
+
+
+if __name__ == "__main__":
+    main()
