@@ -205,3 +205,24 @@ def test_error_messages_stay_one_literal_line(tmp_path):
         assert_one_line_error(result)
     assert "\\x1e0" in invoke("generate", "--config", "\x1e0").output
     assert "[/]x" in invoke("generate", "--config", "[/]x").output
+
+
+@pytest.mark.parametrize("name", ["pendulum", "double_integrator", "cartpole", "acrobot"])
+def test_run_works_for_every_shipped_system(name, tmp_path):
+    """`rrtcolearn run --system NAME` writes the same artefacts for every shipped system, with
+    the system's recommended configuration under the user's settings."""
+    out = tmp_path / name
+    result = invoke("run", "--system", name, "--out", str(out), "--seed", "1",
+                    "--set", "generate.n_simulations=2000", "--set", "clean.k_max=300",
+                    "--set", "plan.max_iterations=300", "--set", "plan.time_limit=20")
+    assert result.exit_code == 0, result.output
+    for artefact in ("config.toml", "dataset.npz", "cleaned.npz", "model.json", "plan.json",
+                     "plan.png", "summary.json"):
+        assert (out / artefact).is_file(), artefact
+    plan = json.loads((out / "plan.json").read_text())
+    assert plan["system"] == name
+    assert plan["status"] in ("exact", "approximate", "timeout")
+    cfg = (out / "config.toml").read_text()
+    assert "n_simulations = 2000" in cfg  # the user's setting wins over the recommended one
+    if name == "cartpole":  # ... which applies where the user is silent
+        assert 'name = "cartpole-swingup"' in cfg and "control_samples = 16" in cfg

@@ -1,0 +1,99 @@
+"""Planning beyond the pendulum: weighted, angle-aware distances, recommended configurations,
+and the planner options for higher dimensions, checked against independent re-simulation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rrtcolearn import pipeline
+from rrtcolearn.config import Config, load_config
+from rrtcolearn.learn.models import LearnedFunctions
+from rrtcolearn.systems import make, recommended_config
+
+
+def di_rhs(z: np.ndarray, w: float) -> np.ndarray:
+    """The double integrator's state+costate+cost ODE, written out by hand:
+    H* = w + l_q v - l_v^2 / 2, u* = -l_v."""
+    _q, v, lq, lv, _c = z
+    return np.array([v, -lv, 0.0, -lq, w + 0.5 * lv * lv])
+
+
+def rk4(z: np.ndarray, w: float, dt: float, steps: int) -> np.ndarray:
+    for _ in range(steps):
+        k1 = di_rhs(z, w)
+        k2 = di_rhs(z + 0.5 * dt * k1, w)
+        k3 = di_rhs(z + 0.5 * dt * k2, w)
+        k4 = di_rhs(z + dt * k3, w)
+        z = z + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return z
+
+
+@pytest.fixture(scope="module")
+def di_model(tmp_path_factory):
+    cfg = load_config(overrides=['system.name="double_integrator"',
+                                 "generate.n_simulations=6000", "clean.k_max=500"])
+    run = tmp_path_factory.mktemp("di")
+    pipeline.generate(cfg, run)
+    pipeline.clean(cfg, run)
+    return pipeline.fit(cfg, run)
+
+
+@pytest.mark.parametrize("options", [
+    [],  # the paper's planner
+    ["plan.control_samples=8", "plan.extend_distance=0.5", "plan.max_candidates=4"],
+])
+def test_double_integrator_plans_resimulate(di_model, options):
+    cfg = load_config(overrides=['system.name="double_integrator"', *options])
+    p = pipeline.plan(di_model, [-1.0, 0.0], [1.0, 0.0], 0.1, seed=2, config=cfg,
+                      time_limit=None, max_iterations=20_000)
+    assert p.solved
+    d = p.to_dict()
+    w, dt = d["time_weight"], d["dt"]
+    total = 0.0
+    for e in d["path"]:
+        x, lam = np.array(e["from"]), np.array(e["costate"])
+        assert abs(w + lam[0] * x[1] - 0.5 * lam[1] ** 2) < 1e-9  # H* = 0 at the start
+        z = rk4(np.r_[x, lam, 0.0], w, dt, round(e["duration"] / dt))
+        np.testing.assert_allclose(z[:2], e["to"], atol=1e-9)
+        assert z[4] == pytest.approx(e["cost"], abs=1e-9)
+        total += e["cost"]
+    assert d["path_cost"] == pytest.approx(total)
+    assert np.linalg.norm(np.array(d["path"][-1]["to"]) - [1.0, 0.0]) <= 0.1
+
+
+def test_pendulum_distances_are_the_papers():
+    assert np.array_equal(make("pendulum").metric_scale, [1.0, 1.0])
+    scale = make("cartpole").metric_scale
+    system = make("cartpole")
+    np.testing.assert_allclose(scale * (system.state_high - system.state_low), 2 * np.pi)
+
+
+def test_queries_near_an_angle_seam_find_neighbours_across_it():
+    # angle coordinate 0 in [-pi, pi); data just above -pi, query just below +pi: one turn
+    # apart, so the same problem shifted by 2*pi
+    rng = np.random.default_rng(0)
+    x0 = np.c_[-np.pi + 0.01 + 0.02 * rng.random(50), rng.random(50)]
+    x1 = x0 + 0.1
+    X = np.hstack([x0, x1])
+    cost, targets = np.ones(50), np.ones((50, 2))
+    query = np.array([[np.pi - 0.02, 0.5, np.pi + 0.08, 0.6]])
+    kwargs = dict(n_neighbors=3, validity_threshold=0.5)
+    flat = LearnedFunctions.fit(X, cost, targets, **kwargs)
+    assert not flat.query(query)[2][0]
+    wrapped = LearnedFunctions.fit(X, cost, targets, periodic=((0, -np.pi, np.pi),), **kwargs)
+    assert wrapped.query(query)[2][0]
+    rows, _, idx = wrapped.query_valid(query)
+    assert rows.tolist() == [0]
+    assert (wrapped.source_[idx] < 50).all()  # padded rows point back at their data rows
+
+
+def test_recommended_configuration_sits_under_the_users():
+    assert load_config() == Config()  # the pendulum's are the package defaults
+    assert recommended_config("pendulum") == {}
+    cfg = load_config(overrides=['system.name="cartpole"'])
+    assert cfg.name == "cartpole-swingup" and cfg.plan.control_samples == 16
+    cfg = load_config(overrides=['system.name="cartpole"', "plan.control_samples=2",
+                                 'name="mine"'])
+    assert cfg.name == "mine" and cfg.plan.control_samples == 2
+    assert cfg.plan.sigma == recommended_config("cartpole")["plan"]["sigma"]
