@@ -112,6 +112,8 @@ class PlanConfig(_Section):
                                       "[-pi, 0])")
     goal: list[float] | None = Field(None, description="default: the system's (pendulum: [0, 0])")
     goal_tolerance: float = Field(0.1, gt=0)
+    wrap_goal: bool = Field(False, description="compare angles modulo a turn in the goal test "
+                            "(the paper compares plain coordinates)")
     goal_bias: float = Field(0.2, ge=0, le=1)
     sigma: float = Field(math.pi / 4, gt=0)
     sigma_goal: float = Field(math.pi / 2, gt=0)

@@ -45,7 +45,9 @@ def check_state(system: System, value, what: str) -> np.ndarray:
 class PlanningProblem:
     """Plan from ``start`` to the ball of radius ``goal_tolerance`` around ``goal``.
 
-    The goal test is the Euclidean distance in state coordinates (paper Experiments).
+    The goal test is the Euclidean distance in state coordinates (paper Experiments); with
+    ``wrap_goal`` angle coordinates are compared modulo a turn (upright is upright, whichever
+    way round the tree got there).
     ``u_max`` bounds |u| along every edge (None: unbounded, the paper's setting);
     ``validity`` is the state validity checker (obstacles), checked at every RK4 step.
     """
@@ -56,12 +58,14 @@ class PlanningProblem:
     goal_tolerance: float = 0.1
     u_max: float | None = None
     validity: ObstacleChecker = field(default_factory=ObstacleChecker)
+    wrap_goal: bool = False
 
     @classmethod
     def create(cls, system: System, start, goal, goal_tolerance: float = 0.1, *,
                u_max: float | None = None,
                obstacles: Sequence[Obstacle | dict] = (),
-               is_valid: StateValidityChecker | None = None) -> PlanningProblem:
+               is_valid: StateValidityChecker | None = None,
+               wrap_goal: bool = False) -> PlanningProblem:
         """Validated problem; raises ProblemError with a one-line reason."""
         start = check_state(system, start, "start")
         goal = check_state(system, goal, "goal")
@@ -88,7 +92,7 @@ class PlanningProblem:
                 if not validity(x[None])[0]:
                     raise ProblemError(f"the {what} {x.tolist()} lies inside an obstacle")
         return cls(system, start, goal, tol, None if u_max is None else float(u_max),
-                   validity)
+                   validity, bool(wrap_goal))
 
     def within_bounds(self, x: np.ndarray) -> np.ndarray:
         """(N,) True where states (N, n) lie inside the state box in its non-angle coordinates.
@@ -100,6 +104,19 @@ class PlanningProblem:
         return np.all((x[:, dims] >= self.system.state_low[dims])
                       & (x[:, dims] <= self.system.state_high[dims]), axis=1)
 
+    @property
+    def goal_angles(self) -> tuple[int, ...]:
+        """Coordinates compared modulo a turn in the goal test."""
+        return tuple(self.system.angle_dims) if self.wrap_goal else ()
+
+    def goal_offset(self, x: np.ndarray) -> np.ndarray:
+        """x - goal (N, n), angle coordinates the short way round when ``wrap_goal``."""
+        diff = np.atleast_2d(x) - self.goal
+        angles = list(self.goal_angles)
+        if angles:
+            diff[:, angles] = np.mod(diff[:, angles] + np.pi, 2.0 * np.pi) - np.pi
+        return diff
+
     def goal_distance(self, x: np.ndarray) -> np.ndarray:
-        """Euclidean distance of states (N, n) to the goal."""
-        return np.linalg.norm(np.atleast_2d(x) - self.goal, axis=1)
+        """Euclidean distance of states (N, n) to the goal (see ``wrap_goal``)."""
+        return np.linalg.norm(self.goal_offset(x), axis=1)

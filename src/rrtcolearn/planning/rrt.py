@@ -156,7 +156,7 @@ class RRTCoLearn:
             over = np.flatnonzero(u_all[1:] > u_max)
             if over.size:
                 end = min(end, int(over[0]))
-        gd = path[:end] - prob.goal
+        gd = prob.goal_offset(path[:end])
         hit = np.flatnonzero(np.einsum("ij,ij->i", gd, gd) <= prob.goal_tolerance**2)
         if hit.size:
             end = int(hit[0]) + 1
@@ -200,7 +200,13 @@ class RRTCoLearn:
             states = tree.states[:m]
             if extend and not to_goal:
                 target = self._extend(states, target, weight)
-            diff = states - target
+            if to_goal and prob.wrap_goal:
+                # each node aims at the goal's image nearest to it (angles modulo a turn)
+                diff = prob.goal_offset(states)
+                target_rows = states - diff
+            else:
+                diff = states - target
+                target_rows = None
             near = np.flatnonzero(np.einsum("ij,ij->i", diff, diff) <= reach2)
             if near.size == 0:
                 continue
@@ -210,7 +216,8 @@ class RRTCoLearn:
                 keep = np.argpartition(np.einsum("ij,ij->i", wd, wd), s.max_candidates - 1)
                 near = np.sort(near[keep[: s.max_candidates]])
             sh = shifts[near]
-            query = np.concatenate([states[near] + sh, target + sh], axis=1)
+            query = np.concatenate([states[near] + sh, (target if target_rows is None else
+                                                         target_rows[near]) + sh], axis=1)
             rows, cost, neighbours = self.model.query_valid(query)
             if rows.size == 0:
                 continue
@@ -219,6 +226,7 @@ class RRTCoLearn:
             prediction = self.model.steering.predict_from_neighbours(
                 None, neighbours[best : best + 1])[0]
             x0 = states[parent]
+            aim = target if target_rows is None else target_rows[parent]
             sigma = s.sigma_goal if to_goal else s.sigma
             edge, best_d2 = None, np.inf
             for _ in range(s.control_samples):
@@ -230,7 +238,7 @@ class RRTCoLearn:
                     break
                 # OMPL's directed control sampling: keep the draw ending nearest the target,
                 # cut at its state nearest the target
-                wd = (cand[0][1:, :n] - target) * weight
+                wd = (cand[0][1:, :n] - aim) * weight
                 d2 = np.einsum("ij,ij->i", wd, wd)
                 k = int(np.argmin(d2))
                 if d2[k] < best_d2:
@@ -264,4 +272,5 @@ class RRTCoLearn:
             status=status, planning_time_s=wall, planning_cpu_s=cpu, iterations=iterations,
             tree=tree, path_nodes=tree.path_to(end), u_max=prob.u_max,
             obstacles=[o.to_dict() for o in prob.validity.obstacles],
+            goal_angles=prob.goal_angles,
         )

@@ -82,6 +82,7 @@ class Plan:
     u_max: float | None = None
     obstacles: list[dict] = field(default_factory=list)
     extra: dict = field(default_factory=dict)
+    goal_angles: tuple[int, ...] = ()  # angle coordinates compared modulo a turn at the goal
 
     @property
     def solved(self) -> bool:
@@ -103,6 +104,16 @@ class Plan:
     @property
     def path_duration(self) -> float:
         return float(sum(self.tree.durations[i] for i in self.path_nodes[1:]))
+
+    @property
+    def final_goal_distance(self) -> float | None:
+        """Distance of the path's end to the goal (angles in ``goal_angles`` modulo a turn)."""
+        if not self.path_nodes:
+            return None
+        diff = self.tree.states[self.path_nodes[-1]] - self.goal
+        for j in self.goal_angles:
+            diff[j] = (diff[j] + np.pi) % (2.0 * np.pi) - np.pi
+        return float(np.linalg.norm(diff))
 
     def edges(self) -> list[dict]:
         t = self.tree
@@ -140,8 +151,8 @@ class Plan:
             "u_max": self.u_max,
             "max_abs_u": self.max_abs_u,
             "obstacles": self.obstacles,
-            "final_goal_distance": float(np.linalg.norm(
-                t.states[self.path_nodes[-1]] - self.goal)) if self.path_nodes else None,
+            "goal_angles": list(self.goal_angles),
+            "final_goal_distance": self.final_goal_distance,
             **self.extra,
             "path": self.edges(),
             "tree": {"states": t.states[:n].tolist(), "parents": t.parents[:n].tolist()},

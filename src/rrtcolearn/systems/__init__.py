@@ -100,7 +100,7 @@ _HIGHER_DIMENSIONAL_PLAN = {
     # pi/2 on a 2*pi range) scaled to that range would be 0.25 and 0.5
     "sigma": 0.25, "sigma_goal": 0.5,
     "control_samples": 16, "max_candidates": 8, "extend_distance": 0.5,
-    "goal_tolerance": 0.3, "time_limit": 60.0,
+    "goal_tolerance": 0.3, "wrap_goal": True, "time_limit": 60.0,
 }
 register("pendulum", make_pendulum)
 register("double_integrator", _double_integrator, {

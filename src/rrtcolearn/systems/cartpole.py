@@ -34,7 +34,7 @@ def make_cartpole() -> SymbolicSystem:
     input_matrix = [[0], [0], [1 / d], [-sympy.cos(th) / (ell * d)]]
     return build_system(
         "cartpole", states=[p, th, dp, dth], inputs=[f], drift=drift,
-        input_matrix=input_matrix, input_weight=[[1]],
+        input_matrix=input_matrix, input_weight=[[0.01]],
         parameters={mc: 10.0, mp: 1.0, ell: 0.5, g: 9.81},
         state_low=[-2.0, -math.pi / 2, -4.0, -10.0],
         state_high=[2.0, 3 * math.pi / 2, 4.0, 10.0],
