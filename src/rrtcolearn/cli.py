@@ -197,11 +197,11 @@ def _do_fit(cfg: Config, run_dir: Path) -> tuple[pipeline.FittedModel, dict]:
     return model, {"fit_cpu_s": round(cpu, 3)}
 
 
-def _write_plan(p, path: Path) -> None:
+def _write_plan(p, path: Path, state_names: tuple[str, ...] | None = None) -> None:
     from rrtcolearn.plotting import save_figure, tree_figure
 
     pipeline.write_plan(p, path)
-    save_figure(tree_figure(p), path.with_suffix(".png"))
+    save_figure(tree_figure(p, state_names), path.with_suffix(".png"))
 
 
 def _plan_summary(p) -> dict:
@@ -347,7 +347,7 @@ def plan(
         p = pipeline.plan(fitted, start_x, goal_x, cfg.plan.goal_tolerance, plan_seed,
                           config=p_cfg, time_limit=cfg.plan.time_limit,
                           max_iterations=cfg.plan.max_iterations)
-        _write_plan(p, out_path)
+        _write_plan(p, out_path, fitted.system.state_names)
         _print_summary(f"plan -> {out_path}", _plan_summary(p))
     _guard(body)
 
@@ -374,7 +374,7 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         p = pipeline.plan(fitted, start, goal, cfg.plan.goal_tolerance,
                           cfg.seed, config=cfg, time_limit=cfg.plan.time_limit,
                           max_iterations=cfg.plan.max_iterations)
-        _write_plan(p, run_dir / "plan.json")
+        _write_plan(p, run_dir / "plan.json", fitted.system.state_names)
         figures |= _plan_summary(p)
         figures["wall_s"] = round(time.perf_counter() - t0, 2)
         pipeline.write_json(run_dir / "summary.json", figures)

@@ -60,32 +60,36 @@ def _clip_halfplane(poly: np.ndarray, normal: np.ndarray, offset: float) -> np.n
     return np.array(out)
 
 
-def plot_tree(ax, plan: Plan, *, max_edges: int | None = None) -> list:
-    """The tree in the state plane with the solution path highlighted (paper Fig. 2)."""
+def plot_tree(ax, plan: Plan, *, max_edges: int | None = None,
+              dims: tuple[int, int] = (0, 1), labels: tuple[str, str] | None = None) -> list:
+    """The tree projected on the state coordinates ``dims`` with the solution path
+    highlighted (paper Fig. 2: the pendulum's (theta, omega) plane)."""
+    i, j = dims
     tree = plan.tree
     trajs = tree.trajectories[1 : tree.n_nodes]
     if max_edges is not None:
         trajs = trajs[:max_edges]
     artists = []
     if trajs:
-        lc = LineCollection([t[:, :2] for t in trajs], colors="0.6", linewidths=0.6)
+        lc = LineCollection([t[:, [i, j]] for t in trajs], colors="0.6", linewidths=0.6)
         artists.append(ax.add_collection(lc))
     states = tree.states[: tree.n_nodes]
-    artists.append(ax.plot(states[:, 0], states[:, 1], ".", color="0.35", ms=2.5)[0])
+    artists.append(ax.plot(states[:, i], states[:, j], ".", color="0.35", ms=2.5)[0])
     path = plan.path_nodes
     if len(path) > 1:
-        pts = np.vstack([tree.trajectories[i][:, :2] for i in path[1:]])
+        pts = np.vstack([tree.trajectories[k][:, [i, j]] for k in path[1:]])
         artists.append(ax.plot(pts[:, 0], pts[:, 1], "-", color="tab:red", lw=1.8,
                                label=f"path (cost {plan.path_cost:.2f})")[0])
-    artists.append(ax.plot(*plan.start[:2], "o", color="tab:blue", label="start")[0])
-    artists.append(ax.add_patch(Circle(tuple(plan.goal[:2]), plan.goal_tolerance, fill=False,
+    artists.append(ax.plot(*plan.start[[i, j]], "o", color="tab:blue", label="start")[0])
+    artists.append(ax.add_patch(Circle(tuple(plan.goal[[i, j]]), plan.goal_tolerance, fill=False,
                                        color="tab:green", lw=1.5)))
-    artists.append(ax.plot(*plan.goal[:2], "*", color="tab:green", ms=10, label="goal")[0])
-    if plan.obstacles:
+    artists.append(ax.plot(*plan.goal[[i, j]], "*", color="tab:green", ms=10, label="goal")[0])
+    if plan.obstacles and dims == (0, 1):
         ax.autoscale_view()
         artists += plot_obstacles(ax, plan.obstacles)
-    ax.set_xlabel(r"$\theta$ [rad]")
-    ax.set_ylabel(r"$\omega$ [rad/s]")
+    xl, yl = labels or (r"$\theta$ [rad]", r"$\omega$ [rad/s]")
+    ax.set_xlabel(xl)
+    ax.set_ylabel(yl)
     limit = f", |u| <= {plan.u_max:g}" if plan.u_max is not None else ""
     ax.set_title(f"{plan.system}{limit}: {plan.status}, {plan.nodes} nodes, "
                  f"{plan.iterations} iterations")
@@ -103,7 +107,17 @@ def save_figure(fig, path: str | Path, dpi: int = 120) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def tree_figure(plan: Plan):
-    fig, ax = plt.subplots(figsize=(6.4, 4.8))
-    plot_tree(ax, plan)
+def tree_figure(plan: Plan, state_names: tuple[str, ...] | None = None):
+    """The tree in the (theta, omega) plane, or for n > 2 states one panel per
+    (coordinate, its rate) pair, the first n/2 coordinates being positions."""
+    n = len(plan.start)
+    if n <= 2 or state_names is None or n % 2:
+        fig, ax = plt.subplots(figsize=(6.4, 4.8))
+        named = state_names is not None and n == 2 and plan.system != "pendulum"
+        plot_tree(ax, plan, labels=tuple(state_names[:2]) if named else None)
+        return fig
+    half = n // 2
+    fig, axes = plt.subplots(1, half, figsize=(5.2 * half, 4.4))
+    for k, ax in enumerate(np.atleast_1d(axes)):
+        plot_tree(ax, plan, dims=(k, k + half), labels=(state_names[k], state_names[k + half]))
     return fig
