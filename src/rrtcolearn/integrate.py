@@ -55,9 +55,11 @@ def rollout_jit(z0, w, dt, n_steps):
 
 
 @_numba.njit(cache=True)
-def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max, scale=None):
+def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max, scale=None,
+                      store=0):
     n_sims, d = z0.shape
-    states = _np.empty((n_sims, max_steps, n))
+    keep = n if store == 0 else store
+    states = _np.empty((n_sims, max_steps, keep))
     costs = _np.empty((n_sims, max_steps))
     lengths = _np.zeros(n_sims, dtype=_np.int64)
     nonfinite = _np.zeros(n_sims, dtype=_np.bool_)
@@ -88,11 +90,11 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max, scale=
             if not ok:
                 nonfinite[i] = True
                 break
-            if znew[d - 1] > max_cost or dist2 > max_dist * max_dist:
+            if abs(znew[d - 1]) > max_cost or dist2 > max_dist * max_dist:
                 break
             if u_max > 0.0 and input_max_abs(znew) > u_max:
                 break
-            for j in range(n):
+            for j in range(keep):
                 states[i, s, j] = znew[j]
             costs[i, s] = znew[d - 1]
             lengths[i] = s + 1
@@ -126,14 +128,17 @@ def rollout_batch(
     n: int,
     u_max: float | None = None,
     scale: np.ndarray | None = None,
+    with_costate: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Integrate rows of ``z0`` (S, 2n+1) until each stops.
 
-    A row stops before the first step whose cost exceeds ``max_cost``, whose state is farther
+    A negative ``dt`` integrates backwards in time (the cost then decreases from 0).
+    A row stops before the first step whose |cost| exceeds ``max_cost``, whose state is farther
     than ``max_dist`` from its start (distance weighted by ``scale`` (n,), default
     ``system.metric_scale``), that is not finite, or (when ``u_max`` is given) whose
     optimal input exceeds ``u_max`` in magnitude; a row whose input at the start already
-    exceeds it yields no points. Returns states (S, max_steps, n), costs (S, max_steps),
+    exceeds it yields no points. Returns states (S, max_steps, n) (with ``with_costate``,
+    (S, max_steps, 2n): states and costates), costs (S, max_steps),
     lengths (S,) — row i's first ``lengths[i]`` steps are valid data points — and a (S,)
     mask of the rows that stopped because the integration overflowed or produced NaN.
     """
@@ -141,4 +146,5 @@ def rollout_batch(
         np.ascontiguousarray(z0, dtype=np.float64), float(w), float(dt), int(max_steps),
         float(max_cost), float(max_dist), int(n),
         float(u_max) if u_max is not None else -1.0,
-        np.ascontiguousarray(system.metric_scale if scale is None else scale, dtype=np.float64))
+        np.ascontiguousarray(system.metric_scale if scale is None else scale, dtype=np.float64),
+        2 * int(n) if with_costate else 0)

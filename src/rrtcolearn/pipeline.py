@@ -107,9 +107,23 @@ def _generation_key(config: Config, system: System) -> str:
     """Digest of everything the raw dataset depends on (not of how it is scheduled)."""
     spec = {"seed": config.seed, "system": config.system.model_dump(mode="json"),
             "generate": config.generate.model_dump(mode="json"),
+            "goal": _data_goal(config, system),
             "box": [system.state_low.tolist(), system.state_high.tolist(),
                     system.param_low.tolist(), system.param_high.tolist()]}
     return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
+
+
+def _data_goal(config: Config, system: System) -> list[float] | None:
+    """The goal of the backward simulations (the configured query's), if there are any."""
+    if not config.generate.goal_simulations:
+        return None
+    goal = query_states(config, system)[1]
+    from rrtcolearn.planning.problem import check_state
+
+    try:
+        return check_state(system, goal, "plan.goal").tolist()
+    except ValueError as exc:
+        raise ConfigError(f"config: {exc}") from None
 
 
 def generate(config: Config, run_dir: str | Path,
@@ -141,7 +155,8 @@ def generate(config: Config, run_dir: str | Path,
         system, seed_stream(config.seed, "generate"), g.n_simulations,
         time_weight=config.system.time_weight, dt=g.dt, max_cost=g.max_cost,
         max_state_distance=g.max_state_distance, chunk_size=g.chunk_size,
-        u_max=config.system.u_max, max_duration=g.max_duration)
+        u_max=config.system.u_max, max_duration=g.max_duration,
+        goal_simulations=g.goal_simulations, goal=_data_goal(config, system))
     shards = ShardStore(run_dir / "shards" / "generate", key, len(tasks))
     parts: list = [shards.load(t.chunk, system.name) for t in tasks]
     todo = [t for t, part in zip(tasks, parts, strict=True) if part is None]

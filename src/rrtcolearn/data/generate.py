@@ -91,6 +91,74 @@ def simulate_chunk(
     return chunk, stats
 
 
+def simulate_goal_chunk(
+    system: System,
+    seed: np.random.SeedSequence | int,
+    n_simulations: int,
+    first_index: int,
+    goal: np.ndarray,
+    *,
+    time_weight: float,
+    dt: float,
+    max_cost: float,
+    max_state_distance: float,
+    u_max: float | None = None,
+    max_duration: float = 20.0,
+    id_offset: int = 0,
+) -> tuple[Dataset, GenerationStats]:
+    """Data points that end at ``goal``: simulations integrated backwards in time from it.
+
+    Each simulation starts at the goal with a costate on H* = 0 (parameters drawn as in
+    `sample_starts`) and runs backwards; every state x(-t) it passes is the start of an
+    optimal segment of duration t that ends at the goal, with the costate found there, so
+    the pair (x(-t), goal) is a data point like any other (its stored costate is the one its
+    parameters give, which differs from the integrated one by RK4's error). In higher
+    dimensions the planner's last connection needs such pairs, which forward simulations
+    from sampled starts almost never provide. Simulation ids are ``id_offset + index``.
+    """
+    cpu0 = time.process_time()
+    if system.params_from_costate is None:
+        raise ValueError(f"system {system.name!r} has no params_from_costate: it cannot use "
+                         "goal simulations")
+    n, k = system.n_states, system.n_params
+    stride = 4 * -(-(n + k) // 4)
+    bitgen = np.random.Philox(_fresh(seed))
+    bitgen.advance(first_index * stride // 4)
+    u = np.random.Generator(bitgen).random((n_simulations, stride))
+    p = system.param_low + (system.param_high - system.param_low) * u[:, n : n + k]
+    xg = np.repeat(np.asarray(goal, dtype=np.float64)[None], n_simulations, axis=0)
+    lam, valid = system.costate_from_params(xg, p, time_weight)
+    sim_index = id_offset + first_index + np.flatnonzero(valid)
+    z0 = np.hstack([xg[valid], lam[valid], np.zeros((int(valid.sum()), 1))])
+    max_steps = int(min(np.ceil(max_cost / (time_weight * dt)) + 1, np.ceil(max_duration / dt)))
+    states, costs, lengths, nonfinite = rollout_batch(
+        system, z0, time_weight, -dt, max_steps, max_cost, max_state_distance, n, u_max=u_max,
+        with_costate=True)
+    rows, steps = np.nonzero(np.arange(max_steps)[None, :] < lengths[:, None])
+    x0, lam0 = states[rows, steps, :n], states[rows, steps, n:]
+    params = system.params_from_costate(x0, lam0)
+    shift = system.wrap_shift(x0)  # angles into the box; the goal shifts with them
+    x0 = x0 + shift
+    x1 = xg[0] + shift
+    # RK4 keeps H* = 0 only to ~1e-7 over a segment: store the costate that the parameters
+    # give (exactly on the surface), which is the one a planner steers with
+    ok = np.isfinite(params).all(axis=1)
+    lam_p = np.full_like(lam0, np.nan)
+    lam_p[ok], valid_p = system.costate_from_params(x0[ok], params[ok], time_weight)
+    ok[ok] = valid_p
+    b = system.bounded_dims
+    keep = ok & np.all(
+        (x0[:, b] >= system.state_low[b]) & (x0[:, b] <= system.state_high[b]), axis=1)
+    data = Dataset(x0=x0[keep], x1=x1[keep], cost=-costs[rows, steps][keep],
+                   params=params[keep], duration=((steps + 1) * dt)[keep],
+                   costate=lam_p[keep], simulation=sim_index[rows][keep].astype(np.int64))
+    stats = GenerationStats(
+        simulations=n_simulations, invalid_costates=int(n_simulations - valid.sum()),
+        empty_simulations=int((lengths == 0).sum()), points=len(data),
+        nonfinite_simulations=int(nonfinite.sum()), worker_cpu_s=time.process_time() - cpu0)
+    return data, stats
+
+
 @dataclass
 class CompactChunk:
     """A chunk's rows without repeating per-simulation values: what workers send back.
@@ -161,10 +229,18 @@ class GenerationTask:
     max_state_distance: float
     u_max: float | None
     max_duration: float = 20.0
+    goal: tuple[float, ...] | None = None  # backward simulations from this goal
+    id_offset: int = 0
 
 
 def run_generation_task(task: GenerationTask) -> tuple[Dataset, GenerationStats]:
     """Generate one chunk (top-level so that worker processes can import it)."""
+    if task.goal is not None:
+        return simulate_goal_chunk(
+            task.system, task.seed, task.count, task.first, np.asarray(task.goal),
+            time_weight=task.time_weight, dt=task.dt, max_cost=task.max_cost,
+            max_state_distance=task.max_state_distance, u_max=task.u_max,
+            max_duration=task.max_duration, id_offset=task.id_offset)
     return simulate_chunk(
         task.system, task.seed, task.count, task.first, time_weight=task.time_weight,
         dt=task.dt, max_cost=task.max_cost, max_state_distance=task.max_state_distance,
@@ -183,18 +259,34 @@ def generation_tasks(
     chunk_size: int = 2000,
     u_max: float | None = None,
     max_duration: float = 20.0,
+    goal_simulations: int = 0,
+    goal: np.ndarray | None = None,
 ) -> list[GenerationTask]:
-    """Alg. 2 split into chunks of ``chunk_size`` simulations (see `sample_starts`)."""
-    if n_simulations < 1 or chunk_size < 1:
+    """Alg. 2 split into chunks of ``chunk_size`` simulations (see `sample_starts`), then
+    ``goal_simulations`` backward simulations from ``goal`` (see `simulate_goal_chunk`)
+    from their own random stream."""
+    if n_simulations < 1 or chunk_size < 1 or goal_simulations < 0:
         raise ValueError("n_simulations and chunk_size must be positive")
     n_chunks = -(-n_simulations // chunk_size)
     root = _fresh(seed)
-    return [
+    tasks = [
         GenerationTask(system, c, c * chunk_size,
                        min(chunk_size, n_simulations - c * chunk_size), root, time_weight, dt,
                        max_cost, max_state_distance, u_max, max_duration)
         for c in range(n_chunks)
     ]
+    if goal_simulations:
+        if goal is None:
+            raise ValueError("goal simulations need a goal")
+        goal_root = np.random.SeedSequence(root.entropy, spawn_key=(*root.spawn_key, 1))
+        goal_t = tuple(float(v) for v in np.asarray(goal, dtype=np.float64))
+        for c in range(-(-goal_simulations // chunk_size)):
+            tasks.append(GenerationTask(
+                system, len(tasks), c * chunk_size,
+                min(chunk_size, goal_simulations - c * chunk_size), goal_root, time_weight,
+                dt, max_cost, max_state_distance, u_max, max_duration, goal_t,
+                id_offset=n_simulations))
+    return tasks
 
 
 def merge(parts: list[tuple[CompactChunk | Dataset, GenerationStats]]
@@ -220,25 +312,19 @@ def generate_data(
     seed: int | np.random.SeedSequence,
     n_simulations: int,
     *,
-    time_weight: float = 1.0,
-    dt: float = 0.01,
-    max_cost: float = 2.0,
-    max_state_distance: float = 1.5,
-    chunk_size: int = 2000,
-    u_max: float | None = None,
-    max_duration: float = 20.0,
     settings: ExecutionSettings | None = None,
     progress: Callable[[int], None] | None = None,
+    **options,
 ) -> tuple[Dataset, GenerationStats]:
-    """Alg. 2 over ``n_simulations`` simulations in fixed-size chunks.
+    """Alg. 2 over ``n_simulations`` simulations in fixed-size chunks; ``options`` are those of
+    `generation_tasks` (time_weight, dt, max_cost, max_state_distance, chunk_size, u_max,
+    max_duration, goal_simulations, goal).
 
     The dataset depends on the seed only: neither on ``chunk_size``, nor on the backend or
     the number of workers (``settings``). ``progress(k)`` is called with the number of
     simulations of each finished chunk.
     """
-    tasks = generation_tasks(system, seed, n_simulations, time_weight=time_weight, dt=dt,
-                             max_cost=max_cost, max_state_distance=max_state_distance,
-                             chunk_size=chunk_size, u_max=u_max, max_duration=max_duration)
+    tasks = generation_tasks(system, seed, n_simulations, **options)
     parts = map_tasks(run_generation_task, tasks, settings,
                       None if progress is None else lambda i, r: progress(tasks[i].count))
     return merge(parts)

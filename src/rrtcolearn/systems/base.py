@@ -39,6 +39,9 @@ class System:
         configuration (nested dict, applied under the user's configuration).
     input_scale : (n,) weights of the state coordinates in learning distances (see
         `metric_scale`); None for the box-derived default.
+    params_from_costate : ``(x (N,n), lambda (N,n)) -> p (N,k)``, the inverse of
+        ``costate_from_params`` on H* = 0 (needed for data simulated backwards from a goal,
+        whose costate is known only at the far end); None if the system has none.
     """
 
     name: str
@@ -63,6 +66,7 @@ class System:
     description: str = ""
     defaults: dict = field(default_factory=dict)
     input_scale: np.ndarray | None = None
+    params_from_costate: Callable | None = None
 
     @property
     def metric_scale(self) -> np.ndarray:

@@ -29,7 +29,19 @@ import numpy as np
 if TYPE_CHECKING:
     from rrtcolearn.systems.symbolic import SymbolicSystem
 
-__all__ = ["costate_from_params", "costate_from_params_jit", "make_pendulum"]
+__all__ = ["costate_from_params", "costate_from_params_jit", "make_pendulum",
+           "phi_from_costate"]
+
+
+def phi_from_costate(x: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """phi (N, 1) of costates (N, 2) on H* = 0: the inverse of `costate_from_params`.
+
+    l_th = tan(phi) and sign(cos(phi)) = sign(l_om - sin(theta)), so phi = atan(l_th), or that
+    plus pi on the branch where cos(phi) < 0; phi lies in [-pi/2, 3pi/2).
+    """
+    phi = np.arctan(lam[:, 0])
+    phi = np.where(lam[:, 1] - np.sin(x[:, 0]) >= 0.0, phi, phi + np.pi)
+    return phi[:, None]
 
 
 def costate_from_params(x: np.ndarray, p: np.ndarray, w: float) -> tuple[np.ndarray, np.ndarray]:
@@ -73,6 +85,7 @@ def make_pendulum() -> SymbolicSystem:
         circular=(True,),
         from_params=costate_from_params,
         from_params_jit=costate_from_params_jit,
+        to_params=phi_from_costate,
     )
     return build_system(
         "pendulum",

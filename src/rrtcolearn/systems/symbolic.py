@@ -483,7 +483,10 @@ class CostateParametrisation:
     from_params_jit : ``(x (n,), p (k,), w, out (n,)) -> bool``, the scalar version, compiled
         with ``numba.njit(cache=True)``; writes the costate into ``out``.
 
-    Both functions should be module-level functions of an importable module, so that the
+    to_params : optional inverse ``(x (N,n), lambda (N,n)) -> p (N,k)`` (see
+        `System.params_from_costate`).
+
+    The functions should be module-level functions of an importable module, so that the
     system pickles (by reference) for spawned workers.
     """
 
@@ -493,6 +496,7 @@ class CostateParametrisation:
     circular: tuple[bool, ...]
     from_params: Callable
     from_params_jit: Callable
+    to_params: Callable | None = None
 
     def __post_init__(self) -> None:
         names = tuple(str(v) for v in self.names)
@@ -513,6 +517,15 @@ class CostateParametrisation:
         for name, value in (("names", names), ("low", low), ("high", high),
                             ("circular", circular)):
             object.__setattr__(self, name, value)
+
+
+def direction_from_costate(x: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """The direction parameters (N, n) of costates on H* = 0: lambda / max_i |lambda_i|, in
+    [-1, 1]^n (the positive scale on the ray is unique, so the direction determines it)."""
+    lam = np.asarray(lam, dtype=np.float64)
+    norm = np.abs(lam).max(axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return lam / norm
 
 
 @dataclass(frozen=True)
@@ -610,12 +623,14 @@ def build_system(
         params = dict(param_names=tuple(f"d_{s}" for s in s_names), param_low=-np.ones(n),
                       param_high=np.ones(n), param_circular=(False,) * n,
                       costate_from_params=module.costate_from_params,
-                      costate_from_params_jit=module.costate_from_params_jit)
+                      costate_from_params_jit=module.costate_from_params_jit,
+                      params_from_costate=direction_from_costate)
     else:
         params = dict(param_names=cp.names, param_low=np.array(cp.low),
                       param_high=np.array(cp.high), param_circular=cp.circular,
                       costate_from_params=cp.from_params,
-                      costate_from_params_jit=cp.from_params_jit)
+                      costate_from_params_jit=cp.from_params_jit,
+                      params_from_costate=cp.to_params)
     return SymbolicSystem(
         name=name,
         state_names=s_names,
