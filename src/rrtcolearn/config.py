@@ -80,6 +80,20 @@ class LearnConfig(_Section):
                                       description="max summed distance to the m neighbours")
     periodic: bool = Field(True, description="angle coordinates wrap around in the distance "
                            "(rows near the seam are indexed one turn over too)")
+    learner: Literal["knn", "mlp"] = Field(
+        "knn", description="J and U from k-NN (the paper) or from a neural network (V stays "
+        "k-NN); mlp needs the optional scikit-learn dependency")
+    mlp_hidden: list[int] = Field([64, 64, 64], min_length=1, max_length=8,
+                                  description="hidden layer widths of the mlp learner")
+    mlp_max_iter: int = Field(200, ge=1, le=10_000, description="training epochs at most")
+    mlp_max_samples: int | None = Field(100_000, ge=20,
+                                        description="rows the networks train on (None: all)")
+
+    @model_validator(mode="after")
+    def _widths(self) -> LearnConfig:
+        if any(h < 1 or h > 4096 for h in self.mlp_hidden):
+            raise ValueError("mlp_hidden widths must lie in 1..4096")
+        return self
 
 
 class BoxObstacle(_Section):

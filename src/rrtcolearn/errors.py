@@ -13,3 +13,9 @@ class ConfigError(RRTCoLearnError):
 
 class ArtefactError(RRTCoLearnError):
     """A missing, truncated, tampered or incompatible file."""
+
+
+class EnvironmentProblem(RRTCoLearnError):
+    """Something the machine lacks, such as an optional dependency."""
+
+    exit_code = 3

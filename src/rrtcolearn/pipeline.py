@@ -37,12 +37,14 @@ from rrtcolearn.data.store import (
     ShardStore,
     atomic_write_text,
     digest,
+    load_arrays,
     load_dataset,
     read_json,
+    save_arrays,
     save_dataset,
     write_json,
 )
-from rrtcolearn.errors import ArtefactError, ConfigError
+from rrtcolearn.errors import ArtefactError, ConfigError, EnvironmentProblem
 from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.parallel import ExecutionSettings, map_tasks
 from rrtcolearn.planning.problem import PlanningProblem
@@ -57,6 +59,8 @@ CLEANED_FILE = "cleaned.npz"
 MODEL_FILE = "model.json"
 MODEL_FORMAT = "rrtcolearn.model"
 MODEL_SCHEMA = 1
+NETWORKS_FILE = "networks.npz"
+NETWORKS_FORMAT = "rrtcolearn.networks"
 
 _STREAMS = {"generate": 0, "clean": 1, "plan": 2}
 
@@ -238,15 +242,17 @@ class FittedModel:
             max_candidates=2**62 if p.max_candidates is None else p.max_candidates)
 
 
-def fit_functions(system: System, data: Dataset, config: Config) -> LearnedFunctions:
-    """Fit J, U and V on a (cleaned) dataset with the configured learner parameters."""
+def fit_functions(system: System, data: Dataset, config: Config, *,
+                  train_networks: bool = True) -> LearnedFunctions:
+    """Fit J, U and V on a (cleaned) dataset with the configured learner parameters
+    (with ``learn.learner = "mlp"`` and ``train_networks``, also the J and U networks)."""
     learn = config.learn
     if learn.cost_lower >= learn.cost_upper:
         raise ConfigError("config: learn.cost_lower must be below learn.cost_upper")
     if len(data) < learn.n_neighbors:
         raise ArtefactError(f"the cleaned dataset has {len(data)} points, fewer than "
                             f"learn.n_neighbors = {learn.n_neighbors}")
-    return LearnedFunctions.fit(
+    functions = LearnedFunctions.fit(
         data.inputs, data.cost, np.hstack([data.params, data.duration[:, None]]),
         n_neighbors=learn.n_neighbors, cost_bounds=(learn.cost_lower, learn.cost_upper),
         validity_threshold=learn.validity_threshold, circular=system.param_circular,
@@ -254,6 +260,40 @@ def fit_functions(system: System, data: Dataset, config: Config) -> LearnedFunct
         input_scale=system.metric_scale,
         periodic=tuple((j, float(system.state_low[j]), float(system.state_high[j]))
                        for j in system.angle_dims) if learn.periodic else ())
+    if learn.learner == "mlp" and train_networks:
+        try:
+            functions.fit_networks(
+                data.inputs, data.cost, np.hstack([data.params, data.duration[:, None]]),
+                hidden=tuple(learn.mlp_hidden), max_iter=learn.mlp_max_iter,
+                max_samples=learn.mlp_max_samples,
+                seed=int(np.random.SeedSequence(config.seed).generate_state(1)[0] >> 1))
+        except ImportError as exc:
+            raise EnvironmentProblem(str(exc)) from None
+    return functions
+
+
+def _save_networks(functions: LearnedFunctions, path: Path, meta: dict) -> str | None:
+    """Write the J and U networks' arrays (prefixed ``J.`` and ``U.``); their digest."""
+    if functions.networks is None:
+        return None
+    arrays = {f"{p}.{k}": v for p, net in zip("JU", functions.networks, strict=True)
+              for k, v in net.to_arrays().items()}
+    return save_arrays(path, NETWORKS_FORMAT, arrays, meta)
+
+
+def _load_networks(path: Path, sha256: str | None) -> tuple:
+    """The J and U networks saved by `fit`, checked against the model file's digest."""
+    from rrtcolearn.learn.mlp import NeuralRegressor
+
+    arrays, meta = load_arrays(path, NETWORKS_FORMAT)
+    if meta.get("sha256") != sha256:
+        raise ArtefactError(f"{path} is not the network file the model was fitted with "
+                            f"(checksum differs); rerun `rrtcolearn fit`")
+    try:
+        return tuple(NeuralRegressor.from_arrays(
+            {k[2:]: v for k, v in arrays.items() if k.startswith(f"{p}.")}) for p in "JU")
+    except ValueError as exc:
+        raise ArtefactError(f"{path}: {exc}") from None
 
 
 def fit(config: Config, run_dir: str | Path) -> FittedModel:
@@ -264,6 +304,8 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
     config = _with_sections(config, meta, ("system", "generate", "clean"))
     functions = fit_functions(system, data, config)
     save_config(config, run_dir)
+    networks_sha = _save_networks(functions, run_dir / NETWORKS_FILE,
+                                  {"system": system.name, "cleaned_sha256": meta["sha256"]})
     write_checked_json(run_dir / MODEL_FILE, {
         "format": MODEL_FORMAT,
         "schema_version": MODEL_SCHEMA,
@@ -273,6 +315,8 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
         "cleaned_sha256": meta["sha256"],
         "points": len(data),
         "max_duration": float(data.duration.max()),
+        "networks_file": None if networks_sha is None else NETWORKS_FILE,
+        "networks_sha256": networks_sha,
         "config": config.model_dump(mode="json"),
     })
     return FittedModel(system, config, functions, float(data.duration.max()),
@@ -325,7 +369,10 @@ def load_model(run_dir: str | Path) -> FittedModel:
     if meta["sha256"] != info.get("cleaned_sha256"):
         raise ArtefactError(f"{run_dir / CLEANED_FILE} is not the dataset the model was "
                             f"fitted on (checksum differs); rerun `rrtcolearn fit`")
-    functions = fit_functions(system, data, config)
+    functions = fit_functions(system, data, config, train_networks=False)
+    if config.learn.learner == "mlp":
+        functions.networks = _load_networks(run_dir / NETWORKS_FILE,
+                                            info.get("networks_sha256"))
     return FittedModel(system, config, functions, float(data.duration.max()),
                        config.generate.max_state_distance)
 

@@ -10,6 +10,7 @@ saved with ``np.savez`` and loaded with ``allow_pickle=False``.
 from __future__ import annotations
 
 import warnings
+import zipfile
 from collections.abc import Mapping
 
 import numpy as np
@@ -46,10 +47,17 @@ class NeuralRegressor:
     Training runs on at most ``max_samples`` rows (a deterministic draw from
     ``np.random.default_rng(seed)``; ``None`` uses all) with relu units, adam, L2 penalty
     ``alpha`` and early stopping on a held-out validation fraction, for at most ``max_iter``
-    epochs. The same data and seed give bit-identical predictions.
+    epochs in all: adam's rate steps down tenfold whenever validation stalls (see
+    `_train_stages`). The same data and seed give bit-identical predictions.
+
+    The defaults were measured on the double integrator's exact cost-to-go (4-D input, 200k
+    pairs, ``log_target``): median relative error 1.0-1.2% over three seeds in 38-46 s of CPU
+    on one core; a planar double integrator (8-D input) gives 1.3% in 41 s. Two layers of 64
+    reach 1.3-1.5%, and with those all 200k rows instead of 100k gain nothing for 1.5x the
+    CPU time.
     """
 
-    def __init__(self, hidden: tuple[int, ...] = (64, 64), max_iter: int = 200, seed: int = 0,
+    def __init__(self, hidden: tuple[int, ...] = (64, 64, 64), max_iter: int = 200, seed: int = 0,
                  alpha: float = 1e-4, max_samples: int | None = 100_000,
                  circular: tuple[bool, ...] = (), low: tuple[float, ...] = (),
                  high: tuple[float, ...] = (), log_target: bool = False):
@@ -76,8 +84,8 @@ class NeuralRegressor:
         if not (np.isfinite(self.alpha) and self.alpha >= 0):
             raise ValueError(f"alpha must be finite and non-negative, got {self.alpha}")
         if self.max_samples is not None and (int(self.max_samples) != self.max_samples
-                                             or self.max_samples < 10):
-            raise ValueError(f"max_samples must be None or an int >= 10, got {self.max_samples}")
+                                             or self.max_samples < 20):
+            raise ValueError(f"max_samples must be None or an int >= 20, got {self.max_samples}")
 
     def _target_layout(self, n_targets: int) -> None:
         """Pad circular/low/high to ``n_targets`` columns and check the circular periods."""
@@ -98,6 +106,7 @@ class NeuralRegressor:
         self.n_targets_ = n_targets
         self.circular_ = circ
         self.low_ = low
+        self.high_ = high
         self.period_ = np.where(circ, period, 0.0)
 
     def _encode(self, y: np.ndarray) -> np.ndarray:
@@ -126,8 +135,8 @@ class NeuralRegressor:
             raise ValueError(f"X must be 2-D (N, D), got shape {X.shape}")
         if y.ndim not in (1, 2) or len(y) != len(X) or (y.ndim == 2 and y.shape[1] < 1):
             raise ValueError(f"y must have shape (N,) or (N, T), N = {len(X)}; got {y.shape}")
-        if len(X) < 10:
-            raise ValueError(f"need at least 10 samples, got {len(X)}")
+        if len(X) < 20:  # early stopping needs two validation rows
+            raise ValueError(f"need at least 20 samples, got {len(X)}")
         if not (np.isfinite(X).all() and np.isfinite(y).all()):
             raise ValueError("X and y must be finite (drop non-finite rows first)")
         self.flat_target_ = y.ndim == 1
@@ -147,8 +156,13 @@ class NeuralRegressor:
             solver="adam", alpha=float(self.alpha), batch_size=min(_BATCH_SIZE, len(X)),
             tol=_TOL, early_stopping=True, validation_fraction=_VALIDATION_FRACTION,
             shuffle=True, random_state=int(self.seed))
-        self.n_iter_ = _train_stages(net, Xs, zs[:, 0] if zs.shape[1] == 1 else zs,
-                                     int(self.max_iter), ConvergenceWarning)
+        from threadpoolctl import threadpool_limits
+
+        # one BLAS thread: a multi-threaded GEMM may sum in another order, and the weights
+        # must not depend on the machine (measured no slower for these small layers)
+        with threadpool_limits(limits=1):
+            self.n_iter_ = _train_stages(net, Xs, zs[:, 0] if zs.shape[1] == 1 else zs,
+                                         int(self.max_iter), ConvergenceWarning)
         self.coefs_ = [np.array(w, dtype=np.float64, order="C") for w in net.coefs_]
         self.intercepts_ = [np.array(b, dtype=np.float64) for b in net.intercepts_]
         self.n_features_in_ = X.shape[1]
@@ -156,8 +170,13 @@ class NeuralRegressor:
 
     # --------------------------------------------------------------- prediction
 
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "coefs_"):
+            raise RuntimeError("NeuralRegressor is not fitted: call fit or from_arrays first")
+
     def predict(self, X: np.ndarray) -> np.ndarray:
         """Predictions (Q, T) for queries X (Q, D); (Q,) if the model was fitted on 1-D y."""
+        self._check_fitted()
         X = np.asarray(X, dtype=np.float64)
         if X.ndim != 2 or X.shape[1] != self.n_features_in_:
             raise ValueError(f"X must be (Q, {self.n_features_in_}), got shape {X.shape}")
@@ -172,11 +191,11 @@ class NeuralRegressor:
         out[:, ~c] = np.exp(plain) if self.log_target else plain
         if n_circ:
             cos, sin = z[:, n_plain:n_plain + n_circ], z[:, n_plain + n_circ:]
-            low, period = self.low_[c], self.period_[c]
+            low, high = self.low_[c], self.high_[c]
             angle = np.mod(np.arctan2(sin, cos), 2.0 * np.pi)
-            val = low + angle * (period / (2.0 * np.pi))
-            # mod can round up to 2 pi, and low + period can round up to high: wrap to low
-            out[:, c] = np.where(val >= low + period, low, val)
+            val = low + angle * (self.period_[c] / (2.0 * np.pi))
+            # mod rounds a tiny negative angle up to 2 pi, which lands on high: wrap to low
+            out[:, c] = np.where(val >= high, low, val)
         return out[:, 0] if self.flat_target_ else out
 
     # ------------------------------------------------------------ serialisation
@@ -187,6 +206,7 @@ class NeuralRegressor:
         Layer i's weights are ``coef_{i}_`` and ``intercept_{i}_``; ``max_samples`` None is
         stored as -1.
         """
+        self._check_fitted()
         arrays = {
             "mlp_format": np.array(FORMAT_VERSION, dtype=np.int64),
             "hidden": np.array(self.hidden, dtype=np.int64).reshape(-1),
@@ -285,8 +305,9 @@ def _train_stages(net, X: np.ndarray, z: np.ndarray, max_iter: int,
 
     Adam at a constant rate stalls at a noise floor; restarting it warm from the best weights
     at a tenth of the rate once early stopping fires lowers the double integrator's median
-    error from 2.8% to about 1.3% for ~60% more epochs. The first stage may use
-    (1 - _DECAY_SHARE) of ``max_iter``, later ones what is left.
+    error from 2.8% (early-stopped after 88 epochs) to 1.3% (200 epochs), with 64-64 units
+    on 100k rows. The first stage may use (1 - _DECAY_SHARE) of ``max_iter``, later ones what
+    is left.
 
     A warm-started sklearn fit draws its validation split from a random state that weight
     initialisation has not advanced, so it differs from the first stage's split (same one
@@ -314,6 +335,7 @@ def _train_stages(net, X: np.ndarray, z: np.ndarray, max_iter: int,
             budget -= int(net.n_iter_)
     return epochs
 
+
 def _moments(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Column mean and standard deviation; constant columns get std 1 (no division by 0)."""
     mean = a.mean(axis=0)
@@ -326,7 +348,7 @@ def _get(arrays: Mapping[str, np.ndarray], key: str, kinds: str,
     """arrays[key] checked for dtype kind, shape (None = any length) and finiteness."""
     try:
         a = np.asarray(arrays[key])
-    except (OSError, ValueError, KeyError, EOFError) as exc:  # e.g. a damaged npz member
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:  # damaged npz
         raise ValueError(f"cannot read array {key!r}: {exc}") from None
     if a.dtype.kind not in kinds:
         raise ValueError(f"array {key!r} has dtype {a.dtype}, expected kind {kinds!r}")

@@ -9,11 +9,15 @@ needs per iteration.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.ndimage import maximum_filter
 
 from rrtcolearn.learn.neighbours import NeighbourIndex
+
+if TYPE_CHECKING:
+    from rrtcolearn.learn.mlp import NeuralRegressor
 
 
 class _KNNBase:
@@ -143,7 +147,12 @@ class ValidityClassifier(_KNNBase):
 
 @dataclass
 class LearnedFunctions:
-    """J, U and V fitted on one dataset and answered from one shared neighbour query."""
+    """J, U and V fitted on one dataset and answered from one shared neighbour query.
+
+    With ``networks`` (see `fit_networks`), J and U come from neural networks on the raw
+    query instead of the neighbours' averages; V, and so which queries are answered at all,
+    stays the k-NN classifier.
+    """
 
     cost_to_go: CostToGoRegressor
     steering: SteeringRegressor
@@ -151,6 +160,7 @@ class LearnedFunctions:
 
     input_scale: np.ndarray | None = None  # (2n,) weights applied to every query
     source_: np.ndarray | None = None  # data row of each indexed point (padding repeats rows)
+    networks: tuple[NeuralRegressor, NeuralRegressor] | None = None  # (J, U) networks
 
     @classmethod
     def fit(cls, X: np.ndarray, cost: np.ndarray, steering_targets: np.ndarray, *,
@@ -185,9 +195,38 @@ class LearnedFunctions:
             None if input_scale is None else scale, source,
         )
 
+    def fit_networks(self, X: np.ndarray, cost: np.ndarray, steering_targets: np.ndarray, *,
+                     hidden: tuple[int, ...] = (64, 64, 64), max_iter: int = 200,
+                     max_samples: int | None = 100_000, seed: int = 0) -> LearnedFunctions:
+        """Train the J network (on log cost) and the U network (circular parameters as
+        angles) on the same data as the neighbours; returns self."""
+        from rrtcolearn.learn.mlp import NeuralRegressor
+
+        st = self.steering
+        n_targets = np.asarray(steering_targets).shape[1]
+        circ = tuple(bool(c) for c in st.circular_)
+        low = tuple(float(v) for v in st.low_) + (0.0,) * (n_targets - len(st.low_))
+        high = tuple(float(v) for v in st.low_ + st.period_)
+        common = dict(hidden=tuple(hidden), max_iter=max_iter, max_samples=max_samples)
+        j_net = NeuralRegressor(seed=seed, log_target=True, **common).fit(X, cost)
+        u_net = NeuralRegressor(seed=seed + 1, circular=circ, low=low, high=high,
+                                **common).fit(X, steering_targets)
+        self.networks = (j_net, u_net)
+        return self
+
     @property
     def n_neighbors(self) -> int:
         return self.cost_to_go.n_neighbors
+
+    def _network_cost(self, X: np.ndarray) -> np.ndarray:
+        return np.clip(self.networks[0].predict(X), *self.cost_to_go.bounds)
+
+    def steer(self, X: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+        """U (Q, k+1) for queries X (Q, 2n) whose neighbour indices (Q, m) `query_valid`
+        returned."""
+        if self.networks is not None:
+            return self.networks[1].predict(np.asarray(X, dtype=np.float64))
+        return self.steering.predict_from_neighbours(None, neighbours)
 
     def _scaled(self, X: np.ndarray) -> np.ndarray:
         return X if self.input_scale is None else np.asarray(X, dtype=np.float64) * \
@@ -195,12 +234,15 @@ class LearnedFunctions:
 
     def query(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(J (Q,), U (Q, k+1), valid (Q,)) for queries X (Q, 2n)."""
-        X = self._scaled(X)
-        dist, idx = self.cost_to_go.kneighbors(X)
+        dist, idx = self.cost_to_go.kneighbors(self._scaled(X))
+        valid = self.validity.predict_from_neighbours(dist, idx)
+        if self.networks is not None:
+            X = np.asarray(X, dtype=np.float64)
+            return self._network_cost(X), self.networks[1].predict(X), valid
         return (
             self.cost_to_go.predict_from_neighbours(dist, idx),
             self.steering.predict_from_neighbours(dist, idx),
-            self.validity.predict_from_neighbours(dist, idx),
+            valid,
         )
 
     def query_valid(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -208,15 +250,17 @@ class LearnedFunctions:
 
         A query is valid only if all its m neighbours lie within the validity threshold, so
         the neighbour search is bounded by it: invalid queries cost little. Returns
-        (valid rows (V,), J (V,), neighbour indices (V, m)); U follows from
-        ``steering.predict_from_neighbours`` for the row the caller picks.
+        (valid rows (V,), J (V,), neighbour indices (V, m)); U follows from `steer` for the
+        row the caller picks.
         """
-        X = self._scaled(X)
-        rows = np.flatnonzero(self.validity.may_be_valid(X))
-        dist, idx = self.cost_to_go.index_.query(X[rows], self.n_neighbors,
+        Xs = self._scaled(X)
+        rows = np.flatnonzero(self.validity.may_be_valid(Xs))
+        dist, idx = self.cost_to_go.index_.query(Xs[rows], self.n_neighbors,
                                                  max_distance=self.validity.threshold)
         ok = dist.sum(axis=1) <= self.validity.threshold
         rows, dist, idx = rows[ok], dist[ok], idx[ok]
+        if self.networks is not None:
+            return rows, self._network_cost(np.asarray(X, dtype=np.float64)[rows]), idx
         return rows, self.cost_to_go.predict_from_neighbours(dist, idx), idx
 
 

@@ -223,8 +223,8 @@ class RRTCoLearn:
                 continue
             best = int(np.argmin(cost))
             parent = int(near[rows[best]])
-            prediction = self.model.steering.predict_from_neighbours(
-                None, neighbours[best : best + 1])[0]
+            prediction = self.model.steer(query[rows[best] : rows[best] + 1],
+                                          neighbours[best : best + 1])[0]
             x0 = states[parent]
             aim = target if target_rows is None else target_rows[parent]
             sigma = s.sigma_goal if to_goal else s.sigma
