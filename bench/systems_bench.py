@@ -6,10 +6,13 @@ then held-out errors on a fresh dataset (another seed), the double integrator's 
 against its exact cost-to-go, and ``--queries`` seeded plans of the system's standard query.
 
     python bench/systems_bench.py [--queries 50] [--time-limit S] [--systems a,b]
+                                  [--set KEY=VALUE ...] [--mlp]
 
 ``--time-limit`` overrides each system's configured ``plan.time_limit`` (the issue's target
-is success within 60 s; `make bench` uses shorter limits to stay quick, which can only
-lower the success rate). Prints a table and, last, one JSON line.
+is success within 60 s; `make bench` uses shorter limits and fewer queries to stay quick,
+which can only lower the success rate). ``--set`` applies configuration overrides to every
+system; ``--mlp`` also fits the neural-network learner and reports its J errors. Prints a
+line per system and, last, one JSON line.
 """
 
 from __future__ import annotations
@@ -30,8 +33,9 @@ SYSTEMS = ("pendulum", "double_integrator", "cartpole", "acrobot")
 TARGETS = {"double_integrator": 1.0, "cartpole": 1.0, "acrobot": 0.9}
 
 
-def bench_system(name: str, queries: int, time_limit: float | None) -> dict:
-    cfg = load_config(None, [f'system.name="{name}"'])
+def bench_system(name: str, queries: int, time_limit: float | None,
+                 overrides: tuple[str, ...] = (), mlp: bool = False) -> dict:
+    cfg = load_config(None, [f'system.name="{name}"', *overrides])
     w, dt = cfg.system.time_weight, cfg.generate.dt
     row: dict = {"system": name}
     with tempfile.TemporaryDirectory() as run_dir:
@@ -44,6 +48,12 @@ def bench_system(name: str, queries: int, time_limit: float | None) -> dict:
         t0 = time.process_time()
         model = pipeline.fit(cfg, run_dir)
         fit_cpu = time.process_time() - t0
+        if mlp:
+            t0 = time.process_time()
+            net_cfg = cfg.model_copy(update={"learn": cfg.learn.model_copy(
+                update={"learner": "mlp"})})
+            networks = pipeline.fit_functions(model.system, cleaned, net_cfg)
+            row["mlp_fit_cpu_s"] = round(time.process_time() - t0, 1)
     row.update(simulations=cfg.generate.n_simulations, raw_points=len(data),
                kept_points=len(cleaned), offline_cpu_s=round(gen_cpu + clean_cpu + fit_cpu, 2))
     system = model.system
@@ -55,15 +65,21 @@ def bench_system(name: str, queries: int, time_limit: float | None) -> dict:
     row.update(heldout_accepted=round(err.accepted_fraction, 3),
                j_rel_error_median=round(float(np.median(err.cost_rel_error)), 4),
                steer_mse_median=round(float(np.median(err.steer_mse)), 5))
+    if mlp:
+        err = held_out_errors(system, networks, held, n_queries=1000, time_weight=w, dt=dt)
+        row.update(mlp_j_rel_error_median=round(float(np.median(err.cost_rel_error)), 4),
+                   mlp_steer_mse_median=round(float(np.median(err.steer_mse)), 5))
     if name == "double_integrator":
         from rrtcolearn.systems.double_integrator import optimal_cost
 
         X = held.inputs
-        cost, _, valid = model.functions.query(X)
-        oracle = optimal_cost(X[valid, :2], X[valid, 2:], w)
-        ok = np.isfinite(oracle) & (oracle > 0)
-        row["j_oracle_rel_error_median"] = round(float(np.median(
-            np.abs(cost[valid][ok] - oracle[ok]) / oracle[ok])), 4)
+        for prefix, functions in [("", model.functions)] + ([("mlp_", networks)] if mlp
+                                                              else []):
+            cost, _, valid = functions.query(X)
+            oracle = optimal_cost(X[valid, :2], X[valid, 2:], w)
+            ok = np.isfinite(oracle) & (oracle > 0)
+            row[f"{prefix}j_oracle_rel_error_median"] = round(float(np.median(
+                np.abs(cost[valid][ok] - oracle[ok]) / oracle[ok])), 4)
         # how optimal the indirect data themselves are (local optima the cleaning removes)
         data_ok = np.isfinite(optimal_cost(X[:, :2], X[:, 2:], w))
         row["data_oracle_rel_error_median"] = round(float(np.median(
@@ -78,7 +94,10 @@ def bench_system(name: str, queries: int, time_limit: float | None) -> dict:
     row.update(goal_tolerance=cfg.plan.goal_tolerance, time_limit_s=limit, queries=queries,
                success_rate=round(float(np.mean([p.solved for p in plans])), 3),
                plan_cpu_s_median=round(float(np.median([p.planning_cpu_s for p in plans])), 4),
-               plan_nodes_median=float(np.median([p.nodes for p in plans])))
+               plan_nodes_median=float(np.median([p.nodes for p in plans])),
+               unsolved_goal_distance_median=round(float(np.median(
+                   [p.final_goal_distance for p in plans if not p.solved])), 3)
+               if not all(p.solved for p in plans) else None)
     solved = [p for p in plans if p.solved]
     row["plan_cost_median"] = round(float(np.median([p.path_cost for p in solved])), 3) \
         if solved else None
@@ -89,18 +108,22 @@ def bench_system(name: str, queries: int, time_limit: float | None) -> dict:
     return row
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--queries", type=int, default=50)
     ap.add_argument("--time-limit", type=float, default=None)
     ap.add_argument("--systems", default=",".join(SYSTEMS))
-    args = ap.parse_args()
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--mlp", action="store_true")
+    args = ap.parse_args(argv)
     rows = []
     for name in args.systems.split(","):
-        row = bench_system(name, args.queries, args.time_limit)
+        row = bench_system(name, args.queries, args.time_limit, tuple(args.set), args.mlp)
         rows.append(row)
         print(" ".join(f"{k}={v}" for k, v in row.items()), flush=True)
-    print(json.dumps({"systems": rows}))
+    if argv is None:
+        print(json.dumps({"systems": rows}))
+    return rows
 
 
 if __name__ == "__main__":
