@@ -214,7 +214,8 @@ def test_run_works_for_every_shipped_system(name, tmp_path):
     out = tmp_path / name
     result = invoke("run", "--system", name, "--out", str(out), "--seed", "1",
                     "--set", "generate.n_simulations=2000", "--set", "clean.k_max=300",
-                    "--set", "plan.max_iterations=300", "--set", "plan.time_limit=20")
+                    "--set", "plan.max_iterations=300", "--set", "plan.time_limit=20",
+                    "--set", "learn.mlp_max_iter=5")
     assert result.exit_code == 0, result.output
     for artefact in ("config.toml", "dataset.npz", "cleaned.npz", "model.json", "plan.json",
                      "plan.png", "summary.json"):
@@ -226,3 +227,4 @@ def test_run_works_for_every_shipped_system(name, tmp_path):
     assert "n_simulations = 2000" in cfg  # the user's setting wins over the recommended one
     if name == "cartpole":  # ... which applies where the user is silent
         assert 'name = "cartpole-swingup"' in cfg and "control_samples = 16" in cfg
+        assert 'learner = "mlp"' in cfg and (out / "networks.npz").is_file()

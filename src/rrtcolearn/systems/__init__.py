@@ -110,13 +110,13 @@ register("double_integrator", _double_integrator, {
 register("cartpole", _cartpole, {
     "name": "cartpole-swingup",
     "generate": {"n_simulations": 100_000, "max_cost": 50.0},
-    "learn": {"validity_threshold": 2.0},
+    "learn": {"validity_threshold": 2.0, "learner": "mlp"},
     "plan": _HIGHER_DIMENSIONAL_PLAN,
 })
 register("acrobot", _acrobot, {
     "name": "acrobot-swingup",
     "generate": {"n_simulations": 100_000, "max_cost": 50.0},
-    "learn": {"validity_threshold": 2.0},
+    "learn": {"validity_threshold": 2.0, "learner": "mlp"},
     "plan": _HIGHER_DIMENSIONAL_PLAN,
 })
 
