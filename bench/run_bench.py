@@ -1,4 +1,7 @@
-"""`make bench`: offline and online figures of the pendulum swing-up, against the targets.
+"""`make bench`: offline and online figures of the pendulum swing-up, against the targets,
+then the parallel-generation speed-up, the soak, and per-system figures (`systems_bench.py
+--quick`, run in a second process beside the pendulum figures: both cores are otherwise idle
+there, and every figure is CPU time of its own process or thread).
 
 Prints a table and, as its last line, one JSON object. CPU figures are process (offline) or
 thread (per plan) CPU time, medians over repeats, measured after a warm-up that compiles and
@@ -9,8 +12,10 @@ from __future__ import annotations
 
 import json
 import statistics
+import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -76,6 +81,17 @@ def offline(system, cfg: Config, seed: int):
 
 
 def main() -> None:
+    long_runs = "--skip-long" not in sys.argv
+    extra = {}
+    if long_runs:  # first, on an otherwise idle machine: it measures two workers' speed-up
+        import parallel_bench
+
+        extra |= parallel_bench.main()
+    systems = None
+    if "--skip-systems" not in sys.argv:
+        systems = subprocess.Popen(
+            [sys.executable, str(Path(__file__).with_name("systems_bench.py")), "--quick"],
+            stdout=subprocess.PIPE, text=True)
     system = make("pendulum")
     cfg = Config()
     small, _ = generate_data(system, 0, 500)  # warm-up: load compiled kernels
@@ -139,17 +155,21 @@ def main() -> None:
             ok = value <= bound if op == "<=" else value >= bound
             line += f"  {op} {bound} ({note}) {'met' if ok else 'NOT met'}"
         print(line)
-    extra = {}
-    if "--skip-long" not in sys.argv:
-        import parallel_bench
+    if long_runs:
         import soak
 
-        extra |= parallel_bench.main()
         extra |= soak.main()
         for key, value in extra.items():
             print(f"{key:28s} {value!s:>12s}")
         print(f"{'gen_speedup_2w target':28s} {'>= 1.7':>12s}  "
               f"{'met' if extra['gen_speedup_2w'] >= 1.7 else 'NOT met'}")
+    if systems is not None:
+        out, _ = systems.communicate()
+        rows = json.loads(out.strip().splitlines()[-1])["systems"]
+        print("per system (quick settings: a lower bound on `python bench/systems_bench.py`):")
+        for row in rows:
+            print("  " + " ".join(f"{k}={v}" for k, v in row.items()))
+        extra["systems"] = rows
     print(json.dumps(result | extra))
 
 

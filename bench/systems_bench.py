@@ -30,6 +30,16 @@ from rrtcolearn.data.generate import generate_data
 from rrtcolearn.evaluate import held_out_errors
 
 SYSTEMS = ("pendulum", "double_integrator", "cartpole", "acrobot")
+# `make bench` (--quick): the double integrator as recommended, the 8-D systems on a fifth of
+# their data and a shortened network training, 10 queries of at most 10 s each: a quick
+# lower bound on the full figures, which take about 50 minutes per system
+QUICK = {
+    "double_integrator": ((), 50, None),
+    "cartpole": (("generate.n_simulations=20000", "learn.mlp_max_iter=40",
+                  "learn.mlp_max_samples=30000"), 10, 10.0),
+    "acrobot": (("generate.n_simulations=20000", "learn.mlp_max_iter=40",
+                 "learn.mlp_max_samples=30000"), 10, 10.0),
+}
 TARGETS = {"double_integrator": 1.0, "cartpole": 1.0, "acrobot": 0.9}
 
 
@@ -54,7 +64,8 @@ def bench_system(name: str, queries: int, time_limit: float | None,
                 update={"learner": "mlp"})})
             networks = pipeline.fit_functions(model.system, cleaned, net_cfg)
             row["mlp_fit_cpu_s"] = round(time.process_time() - t0, 1)
-    row.update(simulations=cfg.generate.n_simulations, raw_points=len(data),
+    row.update(learner=cfg.learn.learner, simulations=cfg.generate.n_simulations,
+               raw_points=len(data),
                kept_points=len(cleaned), offline_cpu_s=round(gen_cpu + clean_cpu + fit_cpu, 2))
     system = model.system
     held, _ = generate_data(system, 10_000 + cfg.seed, 2000, time_weight=w, dt=dt,
@@ -115,10 +126,17 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--systems", default=",".join(SYSTEMS))
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--mlp", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="make bench's settings (QUICK)")
     args = ap.parse_args(argv)
     rows = []
-    for name in args.systems.split(","):
-        row = bench_system(name, args.queries, args.time_limit, tuple(args.set), args.mlp)
+    for name in QUICK if args.quick else args.systems.split(","):
+        queries, limit, sets = args.queries, args.time_limit, tuple(args.set)
+        if args.quick:
+            extra, queries, limit = QUICK[name]
+            sets = (*extra, *sets)
+        row = bench_system(name, queries, limit, sets, args.mlp)
+        if args.quick:
+            row["quick"] = True
         rows.append(row)
         print(" ".join(f"{k}={v}" for k, v in row.items()), flush=True)
     if argv is None:

@@ -58,8 +58,10 @@ class GenerateConfig(_Section):
     max_duration: float = Field(20.0, gt=0, le=1000.0,
                                 description="longest segment (s); bounds memory and time")
     chunk_size: int = Field(2000, ge=1, le=100_000, description="simulations per seeded chunk")
-    goal_simulations: int = Field(0, ge=0, description="simulations run backwards in time from "
-                                  "the query's goal: data points that end exactly there")
+    goal_simulations: int = Field(0, ge=0, le=1_000_000, description=(
+        "simulations run backwards in time from the query's goal: data points that end "
+        "exactly there (they crowd Alg. 3's neighbour lists near the goal: keep to a few "
+        "thousand)"))
     state_low: list[float] | None = Field(None, description="override the start-state box")
     state_high: list[float] | None = None
     param_low: list[float] | None = Field(None, description="override the costate-parameter range")

@@ -9,7 +9,9 @@ pole mass m_p = 1 kg, pole length l = 0.5 m, g = 9.81 m/s^2. With D = m_c + m_p 
     theta'' = (-f cos(theta) - m_p l theta'^2 cos(theta) sin(theta)
                - (m_c + m_p) g sin(theta)) / (l D)
 
-which is input-affine in f. Standard swing-up query: from hanging at the origin (0, 0, 0, 0) to
+which is input-affine in f. The running cost is w + R f^2 / 2 with R = 0.01 (our choice, not
+Tedrake's: with R = 1 the optimal segments are too weak to swing the pole over; see the
+README). Standard swing-up query: from hanging at the origin (0, 0, 0, 0) to
 upright at the cart's origin (0, pi, 0, 0).
 """
 
