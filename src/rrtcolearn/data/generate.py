@@ -39,15 +39,22 @@ def sample_starts(system: System, seed: int | np.random.SeedSequence, first: int
     by ``seed``, so its start never depends on how simulations are split into chunks.
     Returns (x0, p, lam, valid).
     """
-    ns, k = system.n_states, system.n_params
-    stride = 4 * -(-(ns + k) // 4)  # Philox yields 4 doubles per counter step
-    bitgen = np.random.Philox(_fresh(seed))
-    bitgen.advance(first * stride // 4)
-    u = np.random.Generator(bitgen).random((n, stride))
+    ns = system.n_states
+    u = _uniforms(system, seed, first, n)
     x0 = system.state_low + (system.state_high - system.state_low) * u[:, :ns]
-    p = system.param_low + (system.param_high - system.param_low) * u[:, ns : ns + k]
+    p = system.param_low + (system.param_high - system.param_low) * u[:, ns : ns + system.n_params]
     lam, valid = system.costate_from_params(x0, p, w)
     return x0, p, lam, valid
+
+
+def _uniforms(system: System, seed: int | np.random.SeedSequence, first: int, n: int
+              ) -> np.ndarray:
+    """Uniforms (n, >= n_states + n_params) of simulations first..first+n-1 (block i of a
+    Philox stream for simulation i)."""
+    stride = 4 * -(-(system.n_states + system.n_params) // 4)  # 4 doubles per counter step
+    bitgen = np.random.Philox(_fresh(seed))
+    bitgen.advance(first * stride // 4)
+    return np.random.Generator(bitgen).random((n, stride))
 
 
 def simulate_chunk(
@@ -121,10 +128,7 @@ def simulate_goal_chunk(
         raise ValueError(f"system {system.name!r} has no params_from_costate: it cannot use "
                          "goal simulations")
     n, k = system.n_states, system.n_params
-    stride = 4 * -(-(n + k) // 4)
-    bitgen = np.random.Philox(_fresh(seed))
-    bitgen.advance(first_index * stride // 4)
-    u = np.random.Generator(bitgen).random((n_simulations, stride))
+    u = _uniforms(system, seed, first_index, n_simulations)
     p = system.param_low + (system.param_high - system.param_low) * u[:, n : n + k]
     xg = np.repeat(np.asarray(goal, dtype=np.float64)[None], n_simulations, axis=0)
     lam, valid = system.costate_from_params(xg, p, time_weight)
