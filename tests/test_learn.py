@@ -63,3 +63,16 @@ def test_fit_contract_returns_self_and_refuses_too_few_samples():
     f = LearnedFunctions.fit(X, np.ones(5), np.ones((5, 2)), validity_threshold=100.0)
     j, u, v = f.query(X[:2])
     assert j.shape == (2,) and u.shape == (2, 2) and v.all()
+
+
+def test_circular_mean_stays_below_the_domain_end():
+    """A mean angle a hair below the branch cut must not come back as exactly ``high``."""
+    from rrtcolearn.learn.models import SteeringRegressor
+
+    low, high = -np.pi / 2, 3 * np.pi / 2
+    # just below high (almost the same angle as low, a turn on), and low twice: the mean
+    # direction is a hair below the cut, which the mapping back used to round up to high
+    y = np.array([[np.nextafter(high, low), 1.0], [low, 1.0], [low, 1.0]])
+    reg = SteeringRegressor(3, circular=(True,), low=(low,), high=(high,)).fit(np.zeros((3, 1)), y)
+    out = reg.predict(np.zeros((1, 1)))
+    assert low <= out[0, 0] < high

@@ -93,7 +93,9 @@ class SteeringRegressor(_KNNBase):
         c = self.circular_
         if c.any():
             mean = np.arctan2(self.sin_[idx].mean(axis=1), self.cos_[idx].mean(axis=1))
-            out[:, c] = self.low_[c] + np.mod(mean, 2.0 * np.pi) * self.period_[c] / (2.0 * np.pi)
+            val = self.low_[c] + np.mod(mean, 2.0 * np.pi) * self.period_[c] / (2.0 * np.pi)
+            # mod rounds a tiny negative angle up to 2 pi, which lands on high: wrap to low
+            out[:, c] = np.where(val >= self.low_[c] + self.period_[c], self.low_[c], val)
         return out
 
 
