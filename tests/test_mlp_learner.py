@@ -68,6 +68,9 @@ def test_same_seed_same_networks(mlp_run, tmp_path):
     for a, b in zip(model.functions.networks, again.functions.networks, strict=True):
         for k, v in a.to_arrays().items():
             assert np.array_equal(v, b.to_arrays()[k]), k
+    digests = {r["file"]: r["sha256"] for r in pipeline.inspect_run(run_dir)}
+    again_digests = {r["file"]: r["sha256"] for r in pipeline.inspect_run(tmp_path)}
+    assert again_digests[pipeline.NETWORKS_FILE] == digests[pipeline.NETWORKS_FILE]
 
 
 def test_damaged_or_foreign_network_file_is_refused(mlp_run, tmp_path):

@@ -446,10 +446,13 @@ def content_digest(path: str | Path) -> tuple[str, str]:
     """(kind, SHA-256) of an artefact's content, independent of chunking and file layout.
 
     Datasets: the expanded arrays (x0, x1, cost, params, duration, costate, simulation) in
-    name order; JSON and TOML: the canonical JSON of their content without timing fields;
-    anything else: the file's bytes.
+    name order; network weights: their arrays; JSON and TOML: the canonical JSON of their
+    content without timing fields; anything else: the file's bytes.
     """
     path = Path(path)
+    if path.name == NETWORKS_FILE:
+        arrays, _ = load_arrays(path, NETWORKS_FORMAT)
+        return "weights", digest(arrays)
     if path.suffix == ".npz":
         data, _ = load_dataset(path)
         return "dataset", digest(data.arrays())
