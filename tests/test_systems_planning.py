@@ -42,6 +42,7 @@ def di_model(tmp_path_factory):
 @pytest.mark.parametrize("options", [
     [],  # the paper's planner
     ["plan.control_samples=8", "plan.extend_distance=0.5", "plan.max_candidates=4"],
+    ["plan.goal_connect=true"],  # the last edge by shooting
 ])
 def test_double_integrator_plans_resimulate(di_model, options):
     cfg = load_config(overrides=['system.name="double_integrator"', *options])
@@ -60,6 +61,7 @@ def test_double_integrator_plans_resimulate(di_model, options):
         total += e["cost"]
     assert d["path_cost"] == pytest.approx(total)
     assert np.linalg.norm(np.array(d["path"][-1]["to"]) - [1.0, 0.0]) <= 0.1
+    assert ("goal_connected" in d) == ("plan.goal_connect=true" in options)
 
 
 def test_pendulum_distances_are_the_papers():

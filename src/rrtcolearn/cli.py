@@ -209,7 +209,9 @@ def _plan_summary(p) -> dict:
             "nodes": p.nodes, "path_cost": round(p.path_cost, 4),
             "path_duration": round(p.path_duration, 3),
             "max_abs_u": round(p.max_abs_u, 4), "u_max": p.u_max,
-            "planning_cpu_s": round(p.planning_cpu_s, 4)}
+            "planning_cpu_s": round(p.planning_cpu_s, 4),
+            **({"goal_connected": p.extra["goal_connected"]} if "goal_connected" in p.extra
+               else {})}
 
 
 def _print_summary(title: str, figures: dict) -> None:

@@ -148,6 +148,13 @@ class PlanConfig(_Section):
     max_candidates: int | None = Field(
         None, ge=1, description="query J for only this many nodes nearest the target "
         "(weighted distance); none: every node within reach, the paper's planner")
+    goal_connect: bool = Field(
+        False, description="in goal-biased iterations, also steer exactly to the goal by "
+        "shooting from U's guess (nearest untried node within the data's reach); false: the "
+        "paper's planner")
+    connect_reach: float | None = Field(
+        None, gt=0, description="goal connection only from nodes within this weighted "
+        "distance of the goal; none: the data's reach (generate.max_state_distance)")
     input_limit: Literal["reject", "cut"] = Field(
         "reject", description="an edge whose input exceeds u_max is rejected, or cut before it")
 

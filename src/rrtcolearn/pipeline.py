@@ -239,7 +239,11 @@ class FittedModel:
             input_limit=p.input_limit,
             extend_distance=np.inf if p.extend_distance is None else p.extend_distance,
             metric_scale=self.system.metric_scale, control_samples=p.control_samples,
-            max_candidates=2**62 if p.max_candidates is None else p.max_candidates)
+            max_candidates=2**62 if p.max_candidates is None else p.max_candidates,
+            goal_connect=p.goal_connect,
+            # default: the data's longest weighted excursion, U has seen no longer segment
+            connect_reach=self.max_state_distance if p.connect_reach is None
+            else p.connect_reach)
 
 
 def fit_functions(system: System, data: Dataset, config: Config, *,

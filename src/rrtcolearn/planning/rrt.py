@@ -11,6 +11,7 @@ from scipy.special import ndtr, ndtri
 from rrtcolearn.integrate import rollout
 from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.shooting import shoot
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan, PlannerData
 
@@ -38,6 +39,11 @@ class PlannerSettings:
         one is the paper's planner.
     max_candidates : only this many tree nodes nearest the target (weighted distance) are
         queried for J; unlimited in the paper's planner.
+    goal_connect : in each goal-biased iteration, also try to steer exactly to the goal from
+        the nearest tree node not tried before, by shooting (`planning.shooting`) from U's
+        prediction; off in the paper's planner.
+    connect_reach : nodes farther than this (weighted) from the goal are not tried: the data
+        hold no longer segments, so U's guess means nothing there.
     """
 
     time_weight: float = 1.0
@@ -55,6 +61,8 @@ class PlannerSettings:
     metric_scale: np.ndarray | None = None
     control_samples: int = 1
     max_candidates: int = 2**62
+    goal_connect: bool = False
+    connect_reach: float = np.inf
 
 
 def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
@@ -120,19 +128,31 @@ class RRTCoLearn:
         """One edge from ``x0``: steering parameters drawn around ``prediction``, integrated,
         checked and cut. (trajectory, parameters, costate, steps, max |u|, reaches the goal)
         or None when the draw gives no edge."""
-        prob, sys, s = self.problem, self.problem.system, self.settings
-        n, u_max = sys.n_states, prob.u_max
-        z0[:n], z0[2 * n] = x0, 0.0
         # redraw parameters whose costate does not exist or whose input already breaks
         # the limit at the start: such an edge would be rejected without integrating it
-        for _ in range(s.max_resample):
+        for _ in range(self.settings.max_resample):
             params = self._sample_params(rng, prediction, sigma)
-            if sys.costate_from_params_jit(x0, params[:-1], s.time_weight, lam):
-                z0[n : 2 * n] = lam
-                if u_max is None or sys.input_max_abs_jit(z0) <= u_max:
-                    break
-        else:
-            return None
+            if self._start_edge(x0, params, lam, z0):
+                return self._integrate_edge(x0, params, lam, z0)
+        return None
+
+    def _start_edge(self, x0: np.ndarray, params: np.ndarray, lam: np.ndarray,
+                    z0: np.ndarray) -> bool:
+        """Fill ``lam`` and ``z0`` for an edge from ``x0``; False when the parameters give no
+        costate or an input beyond the limit at the start."""
+        sys, s, u_max = self.problem.system, self.settings, self.problem.u_max
+        n = sys.n_states
+        z0[:n], z0[2 * n] = x0, 0.0
+        if not sys.costate_from_params_jit(x0, params[:-1], s.time_weight, lam):
+            return False
+        z0[n : 2 * n] = lam
+        return u_max is None or sys.input_max_abs_jit(z0) <= u_max
+
+    def _integrate_edge(self, x0: np.ndarray, params: np.ndarray, lam: np.ndarray,
+                        z0: np.ndarray):
+        """The edge of `_edge` for parameters whose start `_start_edge` accepted."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        n, u_max = sys.n_states, prob.u_max
         steps = max(1, round(params[-1] / s.dt))
         traj = rollout(sys, z0, s.time_weight, s.dt, steps)
         # non-finite values propagate to the last RK4 step, so checking it suffices
@@ -171,6 +191,45 @@ class RRTCoLearn:
             return None
         return traj, params, lam.copy(), steps, u_abs, bool(hit.size)
 
+    def _connect_goal(self, tree: PlannerData, shifts: np.ndarray, tried: np.ndarray,
+                      weight: np.ndarray, lam: np.ndarray, z0: np.ndarray):
+        """An edge from the nearest untried node to the goal by shooting, or None.
+
+        The first guesses are U's prediction for (node, goal) with its duration and with
+        2, 4 and 8 times it: U's duration is the least reliable part of its guess far from the
+        data, and Newton's method on the duration alone would not cross the long stretches
+        where the residual grows before it falls.
+        """
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        m = tree.n_nodes
+        states = tree.states[:m]
+        offset = prob.goal_offset(states)
+        wd = offset * weight
+        d2 = np.einsum("ij,ij->i", wd, wd)
+        d2[tried[:m] | (d2 > s.connect_reach**2)] = np.inf
+        node = int(np.argmin(d2))
+        if not np.isfinite(d2[node]):
+            return None
+        tried[node] = True
+        x0 = states[node]
+        sh = shifts[node]
+        query = np.concatenate([x0 + sh, x0 - offset[node] + sh])[None]
+        guess = self.model.query(query)[1][0]
+        for factor in (1.0, 2.0, 4.0, 8.0):
+            duration = min(max(guess[-1], s.dt) * factor, s.max_duration)
+            res = shoot(sys, x0, guess[:-1], duration, prob.goal_offset,
+                        time_weight=s.time_weight, dt=s.dt, max_duration=s.max_duration,
+                        tolerance=0.25 * prob.goal_tolerance, max_iterations=20)
+            if res is not None:
+                params = np.append(res.params, res.steps * s.dt)
+                if self._start_edge(x0, params, lam, z0):
+                    edge = self._integrate_edge(x0, params, lam, z0)
+                    if edge is not None and edge[5]:
+                        return node, edge
+            if duration >= s.max_duration:
+                break
+        return None
+
     def solve(self, termination: TerminationCondition, seed: int | np.random.SeedSequence = 0
               ) -> Plan:
         """Grow the tree until a node reaches the goal region or ``termination`` says stop."""
@@ -185,6 +244,8 @@ class RRTCoLearn:
         lam = np.empty(n)
         z0 = np.empty(2 * n + 1)
         goal_node = -1
+        tried = np.zeros(256, dtype=bool)  # nodes the goal connection has started from
+        connected = False
         extend = np.isfinite(s.extend_distance)
         weight = np.ones(n) if s.metric_scale is None else np.asarray(s.metric_scale)
         iterations = 0
@@ -197,6 +258,16 @@ class RRTCoLearn:
             to_goal = rng.random() < s.goal_bias
             target = prob.goal if to_goal else rng.uniform(sys.state_low, sys.state_high)
             m = tree.n_nodes
+            if to_goal and s.goal_connect:
+                if tried.shape[0] < m:
+                    tried = np.concatenate([tried, np.zeros(tried.shape[0] + m, dtype=bool)])
+                connection = self._connect_goal(tree, shifts, tried, weight, lam, z0)
+                if connection is not None:
+                    parent, (traj, params, lam_e, steps, u_abs, _) = connection
+                    goal_node = tree.add(traj[-1, :n], parent, lam_e, params[:-1],
+                                         steps * s.dt, traj[-1, 2 * n], traj[:, :n], u_abs)
+                    connected = True
+                    break
             states = tree.states[:m]
             if extend and not to_goal:
                 target = self._extend(states, target, weight)
@@ -273,4 +344,6 @@ class RRTCoLearn:
             tree=tree, path_nodes=tree.path_to(end), u_max=prob.u_max,
             obstacles=[o.to_dict() for o in prob.validity.obstacles],
             goal_angles=prob.goal_angles,
+            # which edge reached the goal: the learned steering's, or the shooting connection
+            extra={"goal_connected": connected} if s.goal_connect else {},
         )

@@ -111,7 +111,9 @@ register("cartpole", _cartpole, {
     "name": "cartpole-swingup",
     "generate": {"n_simulations": 100_000, "max_cost": 50.0},
     "learn": {"validity_threshold": 2.0, "learner": "mlp"},
-    "plan": _HIGHER_DIMENSIONAL_PLAN,
+    # the last edge by shooting: 10 of 10 seeded swing-ups within 60 s against 0 of 1 without
+    # (README); the acrobot's shooting does not converge, so it keeps the learned last edge
+    "plan": {**_HIGHER_DIMENSIONAL_PLAN, "goal_connect": True},
 })
 register("acrobot", _acrobot, {
     "name": "acrobot-swingup",
