@@ -45,7 +45,9 @@ def test_networks_answer_j_and_u_and_knn_answers_v(mlp_run):
     # the planner's path gives the same J for the rows V accepts
     rows, cost_v, _ = f.query_valid(X)
     np.testing.assert_array_equal(rows, np.flatnonzero(valid))
-    np.testing.assert_array_equal(cost_v, cost[valid])
+    # the same networks answer both paths; a matrix product over a subset of the rows may
+    # differ in the last bit (BLAS picks its blocking by the number of rows)
+    np.testing.assert_allclose(cost_v, cost[valid], rtol=1e-13, atol=0.0)
     # J is a cost-to-go, not noise: within a factor of two of the exact one for most queries
     oracle = optimal_cost(X[valid, :2], X[valid, 2:], 1.0)
     ratio = cost[valid] / oracle

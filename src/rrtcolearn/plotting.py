@@ -81,9 +81,11 @@ def plot_tree(ax, plan: Plan, *, max_edges: int | None = None,
         artists.append(ax.plot(pts[:, 0], pts[:, 1], "-", color="tab:red", lw=1.8,
                                label=f"path (cost {plan.path_cost:.2f})")[0])
     artists.append(ax.plot(*plan.start[[i, j]], "o", color="tab:blue", label="start")[0])
-    artists.append(ax.add_patch(Circle(tuple(plan.goal[[i, j]]), plan.goal_tolerance, fill=False,
-                                       color="tab:green", lw=1.5)))
-    artists.append(ax.plot(*plan.goal[[i, j]], "*", color="tab:green", ms=10, label="goal")[0])
+    for k, goal in enumerate(_goal_images(plan, states, (i, j))):
+        artists.append(ax.add_patch(Circle(tuple(goal), plan.goal_tolerance, fill=False,
+                                           color="tab:green", lw=1.5)))
+        artists.append(ax.plot(*goal, "*", color="tab:green", ms=10,
+                               label="goal" if k == 0 else None)[0])
     if plan.obstacles and dims == (0, 1):
         ax.autoscale_view()
         artists += plot_obstacles(ax, plan.obstacles)
@@ -96,6 +98,25 @@ def plot_tree(ax, plan: Plan, *, max_edges: int | None = None,
     ax.legend(loc="best", fontsize=8)
     ax.autoscale_view()
     return artists
+
+
+def _goal_images(plan: Plan, states: np.ndarray, dims: tuple[int, int]) -> list[np.ndarray]:
+    """The goal in the plane ``dims``, and with a goal test modulo a turn (``goal_angles``) its
+    copies whole turns away that lie within the tree's extent."""
+    goal = plan.goal[list(dims)]
+    images = [goal]
+    for axis, d in enumerate(dims):
+        if d not in plan.goal_angles:
+            continue
+        lo, hi = states[:, d].min(), states[:, d].max()
+        for base in list(images):
+            for turns in (-2, -1, 1, 2):
+                value = base[axis] + 2.0 * np.pi * turns
+                if lo - plan.goal_tolerance <= value <= hi + plan.goal_tolerance:
+                    image = base.copy()
+                    image[axis] = value
+                    images.append(image)
+    return images
 
 
 def save_figure(fig, path: str | Path, dpi: int = 120) -> None:

@@ -230,6 +230,13 @@ class RRTCoLearn:
                 break
         return None
 
+    def _add_edge(self, tree: PlannerData, parent: int, edge) -> int:
+        """Add the node at the end of ``edge`` (as `_edge` returns it) below ``parent``."""
+        traj, params, lam, steps, u_abs, _ = edge
+        n = self.problem.system.n_states
+        return tree.add(traj[-1, :n], parent, lam, params[:-1], steps * self.settings.dt,
+                        traj[-1, 2 * n], traj[:, :n], u_abs)
+
     def solve(self, termination: TerminationCondition, seed: int | np.random.SeedSequence = 0
               ) -> Plan:
         """Grow the tree until a node reaches the goal region or ``termination`` says stop."""
@@ -263,9 +270,7 @@ class RRTCoLearn:
                     tried = np.concatenate([tried, np.zeros(tried.shape[0] + m, dtype=bool)])
                 connection = self._connect_goal(tree, shifts, tried, weight, lam, z0)
                 if connection is not None:
-                    parent, (traj, params, lam_e, steps, u_abs, _) = connection
-                    goal_node = tree.add(traj[-1, :n], parent, lam_e, params[:-1],
-                                         steps * s.dt, traj[-1, 2 * n], traj[:, :n], u_abs)
+                    goal_node = self._add_edge(tree, *connection)
                     connected = True
                     break
             states = tree.states[:m]
@@ -321,9 +326,8 @@ class RRTCoLearn:
                     edge = (traj_c, params_c, cand[2], k + 1, u_c, False)
             if edge is None:
                 continue
-            traj, params, lam_e, steps, u_abs, hit = edge
-            node = tree.add(traj[-1, :n], parent, lam_e, params[:-1], steps * s.dt,
-                            traj[-1, 2 * n], traj[:, :n], u_abs)
+            node = self._add_edge(tree, parent, edge)
+            traj, hit = edge[0], edge[5]
             if node == shifts.shape[0]:
                 shifts = np.concatenate([shifts, np.empty_like(shifts)])
             shifts[node] = sys.wrap_shift(traj[-1:, :n])[0]
