@@ -23,7 +23,7 @@ import numpy as np
 from rrtcolearn.integrate import rollout_batch
 from rrtcolearn.systems.base import System
 
-_EPS = 1e-6  # finite-difference step of the steering parameters
+_EPS = 1e-6  # relative finite-difference step of the costate coordinates
 _STEP_SIZES = (1.0, 0.5, 0.25, 0.1)  # backtracking line search, evaluated in one batch
 
 
