@@ -110,7 +110,8 @@ def bench_system(name: str, queries: int, time_limit: float | None,
                    [p.final_goal_distance for p in plans if not p.solved])), 3)
                if not all(p.solved for p in plans) else None)
     solved = [p for p in plans if p.solved]
-    if cfg.plan.goal_connect:  # share of the solved plans whose last edge came from shooting
+    if cfg.plan.goal_connect or cfg.plan.goal_funnel:
+        # share of the solved plans whose last edge came from a connection (shooting, funnel)
         row["goal_connected_share"] = round(float(np.mean(
             [p.extra["goal_connected"] for p in solved])), 3) if solved else None
     row["plan_cost_median"] = round(float(np.median([p.path_cost for p in solved])), 3) \

@@ -43,6 +43,7 @@ def di_model(tmp_path_factory):
     [],  # the paper's planner
     ["plan.control_samples=8", "plan.extend_distance=0.5", "plan.max_candidates=4"],
     ["plan.goal_connect=true"],  # the last edge by shooting
+    ["plan.goal_funnel=500", "plan.goal_bias=0.5"],  # ... from along a funnel extremal
 ])
 def test_double_integrator_plans_resimulate(di_model, options):
     cfg = load_config(overrides=['system.name="double_integrator"', *options])
@@ -61,7 +62,10 @@ def test_double_integrator_plans_resimulate(di_model, options):
         total += e["cost"]
     assert d["path_cost"] == pytest.approx(total)
     assert np.linalg.norm(np.array(d["path"][-1]["to"]) - [1.0, 0.0]) <= 0.1
-    assert ("goal_connected" in d) == ("plan.goal_connect=true" in options)
+    connects = "plan.goal_connect=true" in options or "plan.goal_funnel=500" in options
+    assert ("goal_connected" in d) == connects
+    if "plan.goal_funnel=500" in options:
+        assert d["connection"] == "funnel" and d["funnel_states"] > 0
 
 
 def test_pendulum_distances_are_the_papers():

@@ -210,8 +210,8 @@ def _plan_summary(p) -> dict:
             "path_duration": round(p.path_duration, 3),
             "max_abs_u": round(p.max_abs_u, 4), "u_max": p.u_max,
             "planning_cpu_s": round(p.planning_cpu_s, 4),
-            **({"goal_connected": p.extra["goal_connected"]} if "goal_connected" in p.extra
-               else {})}
+            **({"goal_connected": p.extra["connection"] or False}
+               if "goal_connected" in p.extra else {})}
 
 
 def _print_summary(title: str, figures: dict) -> None:

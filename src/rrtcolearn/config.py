@@ -155,6 +155,17 @@ class PlanConfig(_Section):
     connect_reach: float | None = Field(
         None, gt=0, description="goal connection only from nodes within this weighted "
         "distance of the goal; none: the data's reach (generate.max_state_distance)")
+    goal_funnel: int = Field(
+        0, ge=0, le=1_000_000, description="extremals integrated backwards from the goal at "
+        "the start of each plan; in goal-biased iterations the node nearest one of their "
+        "states is steered to the goal along it (continuation, then shooting); 0: the "
+        "paper's planner")
+    funnel_radius: float = Field(
+        0.3, gt=0, description="funnel connection only from nodes within this weighted "
+        "distance of a funnel state")
+    funnel_duration: float = Field(
+        3.0, gt=0, le=100, description="the funnel's extremals are integrated for at most this "
+        "long (s); their cost is bounded by generate.max_cost")
     input_limit: Literal["reject", "cut"] = Field(
         "reject", description="an edge whose input exceeds u_max is rejected, or cut before it")
 

@@ -8,8 +8,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr, ndtri
 
+from rrtcolearn.errors import ConfigError
 from rrtcolearn.integrate import rollout
 from rrtcolearn.learn.models import LearnedFunctions
+from rrtcolearn.planning.funnel import GoalFunnel
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.shooting import shoot
 from rrtcolearn.planning.termination import TerminationCondition
@@ -44,6 +46,12 @@ class PlannerSettings:
         prediction; off in the paper's planner.
     connect_reach : nodes farther than this (weighted) from the goal are not tried: the data
         hold no longer segments, so U's guess means nothing there.
+    goal_funnel : number of extremals integrated backwards from the goal at the start of
+        `solve` (`planning.funnel`); in each goal-biased iteration the untried node nearest a
+        funnel state (weighted) is steered to the goal from that state's extremal. 0 (off):
+        the paper's planner.
+    funnel_radius : nodes farther than this (weighted) from every funnel state are not tried.
+    funnel_duration, funnel_max_cost : the funnel's extremals end after this time or cost.
     """
 
     time_weight: float = 1.0
@@ -63,6 +71,32 @@ class PlannerSettings:
     max_candidates: int = 2**62
     goal_connect: bool = False
     connect_reach: float = np.inf
+    goal_funnel: int = 0
+    funnel_radius: float = 0.3
+    funnel_duration: float = 3.0
+    funnel_max_cost: float = np.inf
+
+
+_FUNNEL_POINTS = 3  # funnel states tried per node (each on its own extremal, nearest first)
+
+
+@dataclass
+class _FunnelSearch:
+    """Per tree node: its nearest funnel states (distances and indices, rows filled up to
+    ``queried``) and whether the funnel connection has started from it."""
+
+    funnel: GoalFunnel
+    dist: np.ndarray
+    index: np.ndarray
+    tried: np.ndarray
+    queried: int = 0
+
+    def grow(self, m: int) -> None:
+        if self.dist.shape[0] < m:
+            extra = self.dist.shape[0] + m
+            self.dist = np.concatenate([self.dist, np.full((extra, _FUNNEL_POINTS), np.inf)])
+            self.index = np.concatenate([self.index, np.zeros((extra, _FUNNEL_POINTS), int)])
+            self.tried = np.concatenate([self.tried, np.zeros(extra, dtype=bool)])
 
 
 def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
@@ -91,6 +125,11 @@ class RRTCoLearn:
         self.model = model
         self.settings = settings or PlannerSettings()
         sys = problem.system
+        if (self.settings.goal_connect or self.settings.goal_funnel) and \
+                sys.params_from_costate is None:
+            raise ConfigError(f"system {sys.name!r} has no params_from_costate: the goal "
+                              "connection and the goal funnel need it (plan.goal_connect, "
+                              "plan.goal_funnel)")
         self._circular = np.zeros(sys.n_params, dtype=bool)
         self._circular[: len(sys.param_circular)] = sys.param_circular
 
@@ -200,7 +239,7 @@ class RRTCoLearn:
         data, and Newton's method on the duration alone would not cross the long stretches
         where the residual grows before it falls.
         """
-        prob, sys, s = self.problem, self.problem.system, self.settings
+        prob, s = self.problem, self.settings
         m = tree.n_nodes
         states = tree.states[:m]
         offset = prob.goal_offset(states)
@@ -217,17 +256,59 @@ class RRTCoLearn:
         guess = self.model.query(query)[1][0]
         for factor in (1.0, 2.0, 4.0, 8.0):
             duration = min(max(guess[-1], s.dt) * factor, s.max_duration)
-            res = shoot(sys, x0, guess[:-1], duration, prob.goal_offset,
-                        time_weight=s.time_weight, dt=s.dt, max_duration=s.max_duration,
-                        tolerance=0.25 * prob.goal_tolerance, max_iterations=20)
-            if res is not None:
-                params = np.append(res.params, res.steps * s.dt)
-                if self._start_edge(x0, params, lam, z0):
-                    edge = self._integrate_edge(x0, params, lam, z0)
-                    if edge is not None and edge[5]:
-                        return node, edge
+            edge = self._shoot_edge(x0, guess[:-1], duration, s.max_duration, lam, z0)
+            if edge is not None:
+                return node, edge
             if duration >= s.max_duration:
                 break
+        return None
+
+    def _shoot_edge(self, x0: np.ndarray, params: np.ndarray, duration: float,
+                    max_duration: float, lam: np.ndarray, z0: np.ndarray):
+        """The edge to the goal that shooting finds from ``x0`` starting at ``params`` and
+        ``duration``, checked like every edge; None unless it reaches the goal region."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        res = shoot(sys, x0, params, duration, prob.goal_offset, time_weight=s.time_weight,
+                    dt=s.dt, max_duration=max_duration,
+                    tolerance=0.25 * prob.goal_tolerance, max_iterations=20)
+        if res is None:
+            return None
+        params = np.append(res.params, res.steps * s.dt)
+        if not self._start_edge(x0, params, lam, z0):
+            return None
+        edge = self._integrate_edge(x0, params, lam, z0)
+        return edge if edge is not None and edge[5] else None
+
+    def _connect_funnel(self, tree: PlannerData, search: _FunnelSearch, lam: np.ndarray,
+                        z0: np.ndarray):
+        """An edge to the goal from the untried node nearest a funnel state, or None: the
+        funnel extremal's solution moved to the node (`GoalFunnel.steer`), then polished by
+        a forward solve from the node."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        m = tree.n_nodes
+        search.grow(m)
+        if search.queried < m:
+            offsets = prob.goal_offset(tree.states[search.queried : m])
+            d, i = search.funnel.nearest(offsets, _FUNNEL_POINTS, s.funnel_radius)
+            search.dist[search.queried : m], search.index[search.queried : m] = d, i
+            search.queried = m
+        best = np.where(search.tried[:m], np.inf, search.dist[:m, 0])
+        node = int(np.argmin(best))
+        if not best[node] <= s.funnel_radius:
+            return None
+        search.tried[node] = True
+        x0 = tree.states[node]
+        offset = prob.goal_offset(x0)[0]
+        for q in range(_FUNNEL_POINTS):
+            if not search.dist[node, q] <= s.funnel_radius:
+                break
+            guess = search.funnel.steer(offset, int(search.index[node, q]), s.funnel_duration)
+            if guess is None:
+                continue
+            params = sys.params_from_costate(x0[None], guess[0][None])[0]
+            edge = self._shoot_edge(x0, params, guess[1], s.funnel_duration, lam, z0)
+            if edge is not None:
+                return node, edge
         return None
 
     def _add_edge(self, tree: PlannerData, parent: int, edge) -> int:
@@ -252,12 +333,22 @@ class RRTCoLearn:
         z0 = np.empty(2 * n + 1)
         goal_node = -1
         tried = np.zeros(256, dtype=bool)  # nodes the goal connection has started from
-        connected = False
+        connection = None  # which connection made the last edge, if one did
         extend = np.isfinite(s.extend_distance)
         weight = np.ones(n) if s.metric_scale is None else np.asarray(s.metric_scale)
         iterations = 0
         cpu0 = time.thread_time()
         termination.start()
+        search = None
+        if s.goal_funnel:
+            # built inside the timed region: its CPU time counts as planning time
+            funnel = GoalFunnel.build(
+                sys, prob.goal, prob.goal_offset, rng, n_simulations=s.goal_funnel,
+                time_weight=s.time_weight, dt=s.dt, max_duration=s.funnel_duration,
+                max_cost=s.funnel_max_cost, scale=weight,
+                tolerance=prob.goal_tolerance)
+            search = _FunnelSearch(funnel, np.full((256, _FUNNEL_POINTS), np.inf),
+                                   np.zeros((256, _FUNNEL_POINTS), int), np.zeros(256, bool))
         if prob.goal_distance(prob.start)[0] <= prob.goal_tolerance:
             goal_node = 0
         while goal_node < 0 and not termination(iterations):
@@ -268,10 +359,16 @@ class RRTCoLearn:
             if to_goal and s.goal_connect:
                 if tried.shape[0] < m:
                     tried = np.concatenate([tried, np.zeros(tried.shape[0] + m, dtype=bool)])
-                connection = self._connect_goal(tree, shifts, tried, weight, lam, z0)
-                if connection is not None:
-                    goal_node = self._add_edge(tree, *connection)
-                    connected = True
+                found = self._connect_goal(tree, shifts, tried, weight, lam, z0)
+                if found is not None:
+                    goal_node = self._add_edge(tree, *found)
+                    connection = "shooting"
+                    break
+            if to_goal and search is not None:
+                found = self._connect_funnel(tree, search, lam, z0)
+                if found is not None:
+                    goal_node = self._add_edge(tree, *found)
+                    connection = "funnel"
                     break
             states = tree.states[:m]
             if extend and not to_goal:
@@ -348,6 +445,8 @@ class RRTCoLearn:
             tree=tree, path_nodes=tree.path_to(end), u_max=prob.u_max,
             obstacles=[o.to_dict() for o in prob.validity.obstacles],
             goal_angles=prob.goal_angles,
-            # which edge reached the goal: the learned steering's, or the shooting connection
-            extra={"goal_connected": connected} if s.goal_connect else {},
+            # which edge reached the goal: the learned steering's, or a connection's
+            extra={"goal_connected": connection is not None, "connection": connection,
+                   **({"funnel_states": len(search.funnel)} if search else {})}
+            if s.goal_connect or search else {},
         )

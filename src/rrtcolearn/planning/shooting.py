@@ -40,28 +40,31 @@ class ShootingResult:
 
 def _endpoints(system: System, x0: np.ndarray, v: np.ndarray, w: float, dt: float
                ) -> tuple[np.ndarray, np.ndarray]:
-    """States at duration v[:, -1] (B, n) from costates v[:, :-1], interpolated between RK4
-    steps, and their time derivative (B, n); NaN rows where the integration fails."""
+    """State and costate (B, 2n) at duration v[:, -1] from x0 with costates v[:, :-1],
+    interpolated between RK4 steps of signed size ``dt`` (negative: backwards in time), and
+    the state's rate of change with the duration (B, n); NaN rows where the integration
+    fails."""
     n, b = len(x0), len(v)
-    k = np.floor(v[:, -1] / dt).astype(np.int64)
-    frac = v[:, -1] / dt - k
+    h = abs(dt)
+    k = np.floor(v[:, -1] / h).astype(np.int64)
+    frac = v[:, -1] / h - k
     z0 = np.empty((b, 2 * n + 1))
     z0[:, :n] = x0
     z0[:, n : 2 * n] = v[:, :-1]
     z0[:, 2 * n] = 0.0
     states, _, lengths, _ = rollout_batch(system, z0, w, dt, int(k.max()) + 1, np.inf,
-                                          np.inf, n)
-    # step s of the batch is the state after s + 1 RK4 steps; index -1 means x0 itself
+                                          np.inf, n, with_costate=True)
+    # step s of the batch is the point after s + 1 RK4 steps; index -1 means z0 itself
     rows = np.arange(b)
-    before = np.where((k >= 1)[:, None], states[rows, np.maximum(k - 1, 0)], x0)
+    before = np.where((k >= 1)[:, None], states[rows, np.maximum(k - 1, 0)], z0[:, : 2 * n])
     after = states[rows, k]
     ok = lengths >= k + 1
     with np.errstate(all="ignore"):  # rows that blew up are masked below
-        x = before + frac[:, None] * (after - before)
-        rate = (after - before) / dt
-    x[~ok] = np.nan
+        z = before + frac[:, None] * (after - before)
+        rate = (after[:, :n] - before[:, :n]) / h
+    z[~ok] = np.nan
     rate[~ok] = np.nan
-    return x, rate
+    return z, rate
 
 
 def _hamiltonian(system: System, x0: np.ndarray, lam: np.ndarray, w: float) -> np.ndarray:
@@ -70,46 +73,38 @@ def _hamiltonian(system: System, x0: np.ndarray, lam: np.ndarray, w: float) -> n
     return system.hamiltonian(x, lam, system.optimal_control(x, lam), w)
 
 
-def shoot(system: System, x0: np.ndarray, params0: np.ndarray, duration0: float,
-          offset: Callable[[np.ndarray], np.ndarray], *, time_weight: float, dt: float,
-          max_duration: float, tolerance: float, max_iterations: int = 20
-          ) -> ShootingResult | None:
-    """Steering parameters and duration that take ``x0`` (n,) to the target.
+def newton(system: System, x0: np.ndarray, lam0: np.ndarray, duration0: float,
+           offset: Callable[[np.ndarray], np.ndarray], *, time_weight: float, dt: float,
+           max_duration: float, tolerance: float, max_iterations: int = 20
+           ) -> tuple[np.ndarray, np.ndarray, float, int] | None:
+    """Costate at ``x0`` and duration (n + 1,) whose extremal ends where ``offset`` vanishes.
 
-    ``offset(states (B, n)) -> (B, n)`` is the state minus the target (angles the short way
-    round, if the goal test wraps them). Starts from the costate of ``params0`` (k,) and
-    ``duration0`` (the learned U) and solves x(T) = target, H*(x0, lambda0) = 0 for
-    (lambda0, T) by damped Newton steps with T kept in [dt, max_duration]: in costate space
-    the equations are smooth, where a parametrisation of the H* = 0 surface has
-    singularities. Stops once the state residual is below ``tolerance``; the parameters
-    returned are the system's for the costate found. None when it does not get there within
-    ``max_iterations`` or the system cannot map a costate back to its parameters.
+    Solves offset(x(T)) = 0, H*(x0, lambda0) = 0 for (lambda0, T) by damped Newton steps
+    from (``lam0``, ``duration0``), with T kept in [|dt|, max_duration]; a negative ``dt``
+    integrates backwards in time, so x0 is then where the extremal ends. Returns the
+    solution, the state and costate at the far end (2n,), the state residual and the number
+    of iterations, or None when it does not get below ``tolerance`` within
+    ``max_iterations``.
     """
     w = float(time_weight)
-    x0 = np.asarray(x0, dtype=np.float64)
     n = len(x0)
-    lam0, valid = system.costate_from_params(x0[None], np.asarray(params0, dtype=np.float64)[None],
-                                             w)
-    if not valid[0] or system.params_from_costate is None:
-        return None
-    v = np.concatenate([lam0[0], [float(np.clip(duration0, dt, max_duration))]])
+    h = abs(dt)
+    v = np.concatenate([lam0, [float(np.clip(duration0, h, max_duration))]])
 
-    def residual(vs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x, rate = _endpoints(system, x0, vs, w, dt)
+    def residual(vs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        z, rate = _endpoints(system, x0, vs, w, dt)
         with np.errstate(all="ignore"):
-            h = _hamiltonian(system, x0, vs[:, :-1], w)
-            return np.hstack([offset(x), h[:, None]]), rate
+            hs = _hamiltonian(system, x0, vs[:, :-1], w)
+            return np.hstack([offset(z[:, :n]), hs[:, None]]), rate, z
 
-    r, rate = residual(v[None])
-    r, rate = r[0], rate[0]
+    r, rate, z = (a[0] for a in residual(v[None]))
     norm = float(np.linalg.norm(r))
     for it in range(max_iterations + 1):
         if not np.isfinite(norm):
             return None
-        if float(np.linalg.norm(r[:n])) <= tolerance and abs(r[n]) <= 1e-9 * (1 + abs(w)):
-            steps = max(1, round(v[-1] / dt))
-            params = system.params_from_costate(x0[None], v[None, :-1])[0]
-            return ShootingResult(params, steps, float(np.linalg.norm(r[:n])), it)
+        state_norm = float(np.linalg.norm(r[:n]))
+        if state_norm <= tolerance and abs(r[n]) <= 1e-9 * (1 + abs(w)):
+            return v, z, state_norm, it
         if it == max_iterations:
             return None
         # Jacobian: costates by forward differences (relative steps), duration from the
@@ -117,7 +112,7 @@ def shoot(system: System, x0: np.ndarray, params0: np.ndarray, duration0: float,
         eps = _EPS * np.maximum(1.0, np.abs(v[:n]))
         probe = np.repeat(v[None], n, axis=0)
         probe[np.arange(n), np.arange(n)] += eps
-        rp, _ = residual(probe)
+        rp, _, _ = residual(probe)
         jac = np.empty((n + 1, n + 1))
         jac[:, :n] = ((rp - r) / eps[:, None]).T
         jac[:n, n] = rate
@@ -132,13 +127,43 @@ def shoot(system: System, x0: np.ndarray, params0: np.ndarray, duration0: float,
                      abs(step[n]) / max(0.2, 0.5 * v[-1]))
         step = step / shrink
         cand = v[None] + np.asarray(_STEP_SIZES)[:, None] * step[None]
-        cand[:, -1] = np.clip(cand[:, -1], dt, max_duration)
-        rc, ratec = residual(cand)
+        cand[:, -1] = np.clip(cand[:, -1], h, max_duration)
+        rc, ratec, zc = residual(cand)
         with np.errstate(all="ignore"):
             norms = np.linalg.norm(rc, axis=1)
         norms[~np.isfinite(norms)] = np.inf
         best = int(np.argmin(norms))
         if not norms[best] < norm:
             return None
-        v, r, rate, norm = cand[best], rc[best], ratec[best], float(norms[best])
+        v, r, rate, z, norm = cand[best], rc[best], ratec[best], zc[best], float(norms[best])
     return None
+
+
+def shoot(system: System, x0: np.ndarray, params0: np.ndarray, duration0: float,
+          offset: Callable[[np.ndarray], np.ndarray], *, time_weight: float, dt: float,
+          max_duration: float, tolerance: float, max_iterations: int = 20
+          ) -> ShootingResult | None:
+    """Steering parameters and duration that take ``x0`` (n,) to the target.
+
+    ``offset(states (B, n)) -> (B, n)`` is the state minus the target (angles the short way
+    round, if the goal test wraps them). Starts from the costate of ``params0`` (k,) and
+    ``duration0`` (the learned U) and solves x(T) = target, H*(x0, lambda0) = 0 for
+    (lambda0, T) by `newton`: in costate space the equations are smooth, where a
+    parametrisation of the H* = 0 surface has singularities. Stops once the state residual
+    is below ``tolerance``; the parameters returned are the system's for the costate found.
+    None when it does not get there within ``max_iterations`` or the system cannot map a
+    costate back to its parameters.
+    """
+    x0 = np.asarray(x0, dtype=np.float64)
+    lam0, valid = system.costate_from_params(x0[None], np.asarray(params0, dtype=np.float64)[None],
+                                             float(time_weight))
+    if not valid[0] or system.params_from_costate is None:
+        return None
+    sol = newton(system, x0, lam0[0], duration0, offset, time_weight=time_weight, dt=dt,
+                 max_duration=max_duration, tolerance=tolerance,
+                 max_iterations=max_iterations)
+    if sol is None:
+        return None
+    v, _, res, it = sol
+    params = system.params_from_costate(x0[None], v[None, :-1])[0]
+    return ShootingResult(params, max(1, round(v[-1] / dt)), res, it)

@@ -1,0 +1,140 @@
+"""The goal funnel: extremals integrated backwards in time from the goal.
+
+Every state x on such an extremal reaches the goal exactly along it, with the costate found
+there; the states of a few thousand of them fill a four-dimensional neighbourhood of the
+paths that end at the goal (three costate directions on H* = 0 and the time to go). Where
+the boundary value problem into the goal is ill-conditioned, as into the acrobot's upright,
+Newton's method started from U's guess does not converge (README), but started from a
+funnel extremal that passes near a tree node it often does: the funnel's solution is moved
+to the node in small steps (continuation), each solved backwards from the goal, where the unknowns
+are the goal's costate and the duration; a last forward solve from the node itself
+(`shooting.shoot`) gives the edge the planner checks like any other.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from rrtcolearn.integrate import rollout_batch
+from rrtcolearn.planning.shooting import newton
+from rrtcolearn.systems.base import System
+
+_CHUNK = 2000  # backward simulations per batched RK4 call (bounds the memory)
+# continuation from the funnel state to the node: first, smallest and largest steps (as
+# fractions of the way); the smallest bounds the work on a node to some 30 solves
+_FIRST_STEP, _MIN_STEP, _MAX_STEP = 0.1, 1.0 / 64, 0.25
+_STAGE_TOLERANCE = 1e-4  # state residual of the intermediate continuation steps
+_FINAL_TOLERANCE = 1e-9  # ... and of the last: the forward solve starts from its costate
+
+
+@dataclass(frozen=True)
+class GoalFunnel:
+    """States (M, n) on backward extremals from ``goal``, each with the index of its
+    simulation (M,) and its time to go in RK4 steps (M,); ``goal_costates`` (S, n) are the
+    simulations' costates at the goal."""
+
+    system: System
+    goal: np.ndarray
+    states: np.ndarray
+    simulation: np.ndarray
+    steps: np.ndarray
+    goal_costates: np.ndarray
+    offsets: np.ndarray
+    scale: np.ndarray
+    index: cKDTree
+    time_weight: float
+    dt: float
+
+    @classmethod
+    def build(cls, system: System, goal: np.ndarray, offset: Callable[[np.ndarray], np.ndarray],
+              rng: np.random.Generator, *, n_simulations: int, time_weight: float, dt: float,
+              max_duration: float, max_cost: float, scale: np.ndarray, tolerance: float
+              ) -> GoalFunnel:
+        """``n_simulations`` extremals from ``goal`` with costates drawn as the data's
+        (uniform steering parameters, H* = 0), integrated backwards for at most
+        ``max_duration`` or until their |cost| exceeds ``max_cost``. Only states inside the
+        state box (non-angle coordinates) all the way to the goal are kept: tree nodes and edges
+        lie there, and only those outside the goal region (radius ``tolerance``): a node
+        there has arrived. ``offset`` is the goal test's state-minus-goal (angles wrapped
+        when it wraps them)."""
+        n = system.n_states
+        goal = np.asarray(goal, dtype=np.float64)
+        params = rng.uniform(system.param_low, system.param_high, (n_simulations, system.n_params))
+        lam, valid = system.costate_from_params(np.repeat(goal[None], n_simulations, axis=0),
+                                                params, time_weight)
+        lam = lam[valid]
+        max_steps = max(1, int(max_duration / dt))
+        bounded = system.bounded_dims
+        lo, hi = system.state_low[bounded], system.state_high[bounded]
+        kept_states, kept_sims, kept_steps = [], [], []
+        for first in range(0, len(lam), _CHUNK):
+            chunk = lam[first : first + _CHUNK]
+            z0 = np.zeros((len(chunk), 2 * n + 1))
+            z0[:, :n] = goal
+            z0[:, n : 2 * n] = chunk
+            states, _, lengths, _ = rollout_batch(system, z0, time_weight, -dt, max_steps,
+                                                  max_cost, np.inf, n)
+            xb = states[:, :, bounded]
+            # a state counts only if the whole way from it to the goal stays in the box
+            inside = np.logical_and.accumulate(((xb >= lo) & (xb <= hi)).all(axis=2), axis=1)
+            mask = inside & (np.arange(max_steps)[None] < lengths[:, None])
+            sims, steps = np.nonzero(mask)
+            kept_states.append(states[sims, steps])
+            kept_sims.append(sims + first)
+            kept_steps.append(steps + 1)
+        states = np.concatenate(kept_states) if kept_states else np.empty((0, n))
+        sims = np.concatenate(kept_sims) if kept_sims else np.empty(0, np.int64)
+        steps = np.concatenate(kept_steps) if kept_steps else np.empty(0, np.int64)
+        offsets = offset(states) if len(states) else states
+        outside = np.einsum("ij,ij->i", offsets, offsets) > tolerance**2
+        states, sims, steps, offsets = states[outside], sims[outside], steps[outside], \
+            offsets[outside]
+        scale = np.asarray(scale, dtype=np.float64)
+        return cls(system, goal, states, sims.astype(np.int64), steps.astype(np.int64), lam,
+                   offsets, scale, cKDTree(offsets * scale), float(time_weight), float(dt))
+
+    def __len__(self) -> int:
+        return len(self.states)
+
+    def nearest(self, offsets: np.ndarray, k: int, radius: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Weighted distances (N, k) from states given by their goal offsets (N, n) to
+        their k nearest funnel states within ``radius`` (inf where there are fewer), and
+        those states' indices (N, k)."""
+        # the bound also keeps the search short: most nodes have no funnel state near them
+        d, i = self.index.query(np.atleast_2d(offsets) * self.scale, k=k,
+                                distance_upper_bound=radius)
+        return d.reshape(-1, k), np.minimum(i.reshape(-1, k), len(self.states) - 1)
+
+    def steer(self, offset: np.ndarray, j: int, max_duration: float
+              ) -> tuple[np.ndarray, float] | None:
+        """Costate and duration of an extremal from the state with goal offset ``offset``
+        (n,) to the goal, found by continuation from funnel state ``j``; None when a step of
+        the continuation does not converge. The result is a first guess for a forward solve:
+        its end is exact only up to the RK4 grid."""
+        xb = self.states[j]
+        x = xb + (offset - self.offsets[j])  # the node, shifted to the funnel state's turn
+        lam, duration = self.goal_costates[self.simulation[j]], self.steps[j] * self.dt
+        done, step, sol = 0.0, _FIRST_STEP, None
+        while done < 1.0:
+            # continuation with step control: halve the step after a failed solve, grow it
+            # after a good one
+            nxt = min(1.0, done + step)
+            target = xb + nxt * (x - xb)
+            sol = newton(self.system, self.goal, lam, duration,
+                         lambda y, t=target: np.atleast_2d(y) - t,
+                         time_weight=self.time_weight, dt=-self.dt, max_duration=max_duration,
+                         tolerance=_FINAL_TOLERANCE if nxt == 1.0 else _STAGE_TOLERANCE)
+            if sol is None:
+                step *= 0.5
+                if step < _MIN_STEP:
+                    return None
+                continue
+            lam, duration, done = sol[0][:-1], float(sol[0][-1]), nxt
+            step = min(2.0 * step, _MAX_STEP)
+        n = self.system.n_states
+        return sol[1][n : 2 * n].copy(), duration

@@ -1,0 +1,79 @@
+"""The goal funnel: its states lie on extremals that end at the goal, and steering from near
+one gives an H* = 0 extremal to the goal; checked with an integrator written here."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from tests.test_systems_planning import rk4 as di_rk4
+
+from rrtcolearn.errors import ConfigError
+from rrtcolearn.planning.funnel import GoalFunnel
+from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
+from rrtcolearn.systems import make
+
+DT = 0.01
+GOAL = np.array([1.0, 0.0])
+
+
+@pytest.fixture(scope="module")
+def funnel():
+    system = make("double_integrator")
+    problem = PlanningProblem.create(system, [-1.0, 0.0], GOAL, 0.1)
+    return GoalFunnel.build(system, GOAL, problem.goal_offset, np.random.default_rng(3),
+                            n_simulations=300, time_weight=1.0, dt=DT, max_duration=2.0,
+                            max_cost=20.0, scale=system.metric_scale, tolerance=0.1)
+
+
+def test_funnel_states_lie_on_extremals_that_end_at_the_goal(funnel):
+    system = funnel.system
+    assert len(funnel) > 1000
+    rng = np.random.default_rng(0)
+    for j in rng.choice(len(funnel), 20, replace=False):
+        lam_goal = funnel.goal_costates[funnel.simulation[j]]
+        lq, lv = lam_goal
+        assert abs(1.0 + lq * GOAL[1] - 0.5 * lv**2) < 1e-9  # H* = 0 at the goal
+        back = di_rk4(np.r_[GOAL, lam_goal, 0.0], 1.0, -DT, int(funnel.steps[j]))
+        np.testing.assert_allclose(back[:2], funnel.states[j], atol=1e-9)
+        # ... and forward from there, with the costate found there, the goal again
+        ahead = di_rk4(np.r_[back[:4], 0.0], 1.0, DT, int(funnel.steps[j]))
+        np.testing.assert_allclose(ahead[:2], GOAL, atol=1e-8)
+    # only states outside the goal region whose way to the goal stays inside the box
+    assert (np.linalg.norm(funnel.offsets, axis=1) > 0.1).all()
+    v = funnel.states[:, 1]
+    assert (v >= system.state_low[1]).all() and (v <= system.state_high[1]).all()
+
+
+def test_funnel_is_deterministic(funnel):
+    system = funnel.system
+    problem = PlanningProblem.create(system, [-1.0, 0.0], GOAL, 0.1)
+    again = GoalFunnel.build(system, GOAL, problem.goal_offset, np.random.default_rng(3),
+                             n_simulations=300, time_weight=1.0, dt=DT, max_duration=2.0,
+                             max_cost=20.0, scale=system.metric_scale, tolerance=0.1)
+    assert np.array_equal(again.states, funnel.states)
+    assert np.array_equal(again.goal_costates, funnel.goal_costates)
+
+
+def test_steering_from_near_a_funnel_state_reaches_the_goal(funnel):
+    d, i = funnel.nearest(np.array([[-0.5, 0.2]]), 3, 0.3)
+    assert np.isfinite(d).all() and (d <= 0.3).all()
+    x = GOAL + np.array([-0.5, 0.2])
+    lam, duration = funnel.steer(x - GOAL, int(i[0, 0]), 3.0)
+    # a first guess for the forward solve: H* = 0 and the goal up to the interpolation
+    # between RK4 steps (O(dt^2)) and the rounding of the duration to the grid
+    assert abs(1.0 + lam[0] * x[1] - 0.5 * lam[1] ** 2) < 1e-3
+    end = di_rk4(np.r_[x, lam, 0.0], 1.0, DT, round(duration / DT))
+    assert np.linalg.norm(end[:2] - GOAL) < 0.01
+    # no funnel state within the radius: infinite distances
+    far, _ = funnel.nearest(np.array([[-1.9, 3.0]]), 3, 0.01)
+    assert np.isinf(far).all()
+
+
+def test_a_system_without_a_costate_inverse_cannot_use_the_funnel():
+    import dataclasses
+
+    system = dataclasses.replace(make("double_integrator"), params_from_costate=None)
+    problem = PlanningProblem.create(system, [-1.0, 0.0], GOAL, 0.1)
+    with pytest.raises(ConfigError, match="params_from_costate"):
+        RRTCoLearn(problem, None, PlannerSettings(goal_funnel=100))
