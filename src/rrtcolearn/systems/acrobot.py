@@ -9,6 +9,12 @@ I2 = Ic2 + m2 lc2^2 about the joints), g = 9.81 m/s^2. The manipulator equations
 M(q) q'' + C(q, q') q' = tau_g(q) + B u, B = (0, 1)^T, are solved for q'' symbolically,
 which is input-affine in the elbow torque u. Standard swing-up query: from hanging
 (0, 0, 0, 0) to upright (pi, 0, 0, 0).
+
+The state box (ours; the notes state none) is theta1' in [-8, 8], theta2' in [-16, 16]
+rad/s: upright lies 49 J above hanging, so the rigid arm passes the bottom on its way up at
+|theta1'| = sqrt(2 * 49 / 4.66) = 4.6 rad/s (4.66 kg m^2 its inertia about the shoulder);
+a box of +-4 and +-8 excluded that swing, and the extremals that end at the upright run
+faster still (README).
 """
 
 from __future__ import annotations
