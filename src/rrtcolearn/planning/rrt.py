@@ -306,6 +306,13 @@ class RRTCoLearn:
             if guess is None:
                 continue
             params = sys.params_from_costate(x0[None], guess[0][None])[0]
+            # the continuation's extremal as it is (exact up to the interpolation between
+            # RK4 steps), else polished by a forward solve
+            direct = np.append(params, max(1, round(guess[1] / s.dt)) * s.dt)
+            if self._start_edge(x0, direct, lam, z0):
+                edge = self._integrate_edge(x0, direct, lam, z0)
+                if edge is not None and edge[5]:
+                    return node, edge
             edge = self._shoot_edge(x0, params, guess[1], s.funnel_duration, lam, z0)
             if edge is not None:
                 return node, edge
