@@ -77,3 +77,15 @@ def test_a_system_without_a_costate_inverse_cannot_use_the_funnel():
     problem = PlanningProblem.create(system, [-1.0, 0.0], GOAL, 0.1)
     with pytest.raises(ConfigError, match="params_from_costate"):
         RRTCoLearn(problem, None, PlannerSettings(goal_funnel=100))
+
+
+def test_min_duration_drops_the_states_near_the_goal_in_time(funnel):
+    system = funnel.system
+    problem = PlanningProblem.create(system, [-1.0, 0.0], GOAL, 0.1)
+    far = GoalFunnel.build(system, GOAL, problem.goal_offset, np.random.default_rng(3),
+                           n_simulations=300, time_weight=1.0, dt=DT, max_duration=2.0,
+                           max_cost=20.0, scale=system.metric_scale, tolerance=0.1,
+                           min_duration=0.5)
+    assert (far.steps * DT >= 0.5 - 1e-12).all()
+    # the same extremals, only their first half second dropped
+    assert len(far) == int((funnel.steps * DT >= 0.5 - 1e-12).sum())

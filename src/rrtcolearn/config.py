@@ -166,6 +166,9 @@ class PlanConfig(_Section):
     funnel_duration: float = Field(
         3.0, gt=0, le=100, description="the funnel's extremals are integrated for at most this "
         "long (s); their cost is bounded by generate.max_cost")
+    funnel_min_duration: float = Field(
+        0.0, ge=0, le=100, description="funnel states less than this time (s) from the goal "
+        "are dropped (where the boundary value problem from near them is ill-conditioned)")
     input_limit: Literal["reject", "cut"] = Field(
         "reject", description="an edge whose input exceeds u_max is rejected, or cut before it")
 

@@ -245,7 +245,8 @@ class FittedModel:
             connect_reach=self.max_state_distance if p.connect_reach is None
             else p.connect_reach,
             goal_funnel=p.goal_funnel, funnel_radius=p.funnel_radius,
-            funnel_duration=p.funnel_duration, funnel_max_cost=self.config.generate.max_cost)
+            funnel_duration=p.funnel_duration, funnel_min_duration=p.funnel_min_duration,
+            funnel_max_cost=self.config.generate.max_cost)
 
 
 def fit_functions(system: System, data: Dataset, config: Config, *,

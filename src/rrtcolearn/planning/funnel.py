@@ -52,15 +52,17 @@ class GoalFunnel:
     @classmethod
     def build(cls, system: System, goal: np.ndarray, offset: Callable[[np.ndarray], np.ndarray],
               rng: np.random.Generator, *, n_simulations: int, time_weight: float, dt: float,
-              max_duration: float, max_cost: float, scale: np.ndarray, tolerance: float
-              ) -> GoalFunnel:
+              max_duration: float, max_cost: float, scale: np.ndarray, tolerance: float,
+              min_duration: float = 0.0) -> GoalFunnel:
         """``n_simulations`` extremals from ``goal`` with costates drawn as the data's
         (uniform steering parameters, H* = 0), integrated backwards for at most
         ``max_duration`` or until their |cost| exceeds ``max_cost``. Only states inside the
         state box (non-angle coordinates) all the way to the goal are kept: tree nodes and edges
         lie there, and only those outside the goal region (radius ``tolerance``): a node
         there has arrived. ``offset`` is the goal test's state-minus-goal (angles wrapped
-        when it wraps them)."""
+        when it wraps them). States closer than ``min_duration`` to the goal are dropped:
+        where little time is left, the boundary value problem from near them can be too
+        ill-conditioned to solve (the acrobot's, README)."""
         n = system.n_states
         goal = np.asarray(goal, dtype=np.float64)
         params = rng.uniform(system.param_low, system.param_high, (n_simulations, system.n_params))
@@ -70,6 +72,12 @@ class GoalFunnel:
         max_steps = max(1, int(max_duration / dt))
         bounded = system.bounded_dims
         lo, hi = system.state_low[bounded], system.state_high[bounded]
+        # stop each extremal once it is certainly outside the box: beyond the ball around the
+        # goal, in the bounded coordinates scaled by the box's widths, that holds the box
+        ball = np.zeros(n)
+        ball[bounded] = 1.0 / (hi - lo)
+        radius = float(np.sqrt(np.sum((np.maximum(hi - goal[bounded], goal[bounded] - lo)
+                                       * ball[bounded]) ** 2)))
         kept_states, kept_sims, kept_steps = [], [], []
         for first in range(0, len(lam), _CHUNK):
             chunk = lam[first : first + _CHUNK]
@@ -77,11 +85,12 @@ class GoalFunnel:
             z0[:, :n] = goal
             z0[:, n : 2 * n] = chunk
             states, _, lengths, _ = rollout_batch(system, z0, time_weight, -dt, max_steps,
-                                                  max_cost, np.inf, n)
+                                                  max_cost, radius, n, scale=ball)
             xb = states[:, :, bounded]
             # a state counts only if the whole way from it to the goal stays in the box
             inside = np.logical_and.accumulate(((xb >= lo) & (xb <= hi)).all(axis=2), axis=1)
-            mask = inside & (np.arange(max_steps)[None] < lengths[:, None])
+            steps_left = np.arange(1, max_steps + 1)[None]
+            mask = inside & (steps_left <= lengths[:, None]) & (steps_left * dt >= min_duration)
             sims, steps = np.nonzero(mask)
             kept_states.append(states[sims, steps])
             kept_sims.append(sims + first)

@@ -52,6 +52,7 @@ class PlannerSettings:
         the paper's planner.
     funnel_radius : nodes farther than this (weighted) from every funnel state are not tried.
     funnel_duration, funnel_max_cost : the funnel's extremals end after this time or cost.
+    funnel_min_duration : funnel states less than this time from the goal are dropped.
     """
 
     time_weight: float = 1.0
@@ -74,6 +75,7 @@ class PlannerSettings:
     goal_funnel: int = 0
     funnel_radius: float = 0.3
     funnel_duration: float = 3.0
+    funnel_min_duration: float = 0.0
     funnel_max_cost: float = np.inf
 
 
@@ -353,7 +355,7 @@ class RRTCoLearn:
                 sys, prob.goal, prob.goal_offset, rng, n_simulations=s.goal_funnel,
                 time_weight=s.time_weight, dt=s.dt, max_duration=s.funnel_duration,
                 max_cost=s.funnel_max_cost, scale=weight,
-                tolerance=prob.goal_tolerance)
+                tolerance=prob.goal_tolerance, min_duration=s.funnel_min_duration)
             search = _FunnelSearch(funnel, np.full((256, _FUNNEL_POINTS), np.inf),
                                    np.zeros((256, _FUNNEL_POINTS), int), np.zeros(256, bool))
         if prob.goal_distance(prob.start)[0] <= prob.goal_tolerance:

@@ -121,7 +121,8 @@ register("acrobot", _acrobot, {
     "learn": {"validity_threshold": 2.0, "learner": "mlp"},
     # its shooting from U's guess does not converge (the boundary value problem into the
     # upright is ill-conditioned); continuation along extremals from the goal does (README)
-    "plan": {**_HIGHER_DIMENSIONAL_PLAN, "goal_funnel": 20_000},
+    # (60 000 extremals, of which only the states at least 1 s from the goal are kept)
+    "plan": {**_HIGHER_DIMENSIONAL_PLAN, "goal_funnel": 60_000, "funnel_min_duration": 1.0},
 })
 
 __all__ = ["System", "list_systems", "make", "recommended_config", "register"]
