@@ -94,11 +94,16 @@ class _FunnelSearch:
     queried: int = 0
 
     def grow(self, m: int) -> None:
-        if self.dist.shape[0] < m:
-            extra = self.dist.shape[0] + m
-            self.dist = np.concatenate([self.dist, np.full((extra, _FUNNEL_POINTS), np.inf)])
-            self.index = np.concatenate([self.index, np.zeros((extra, _FUNNEL_POINTS), int)])
-            self.tried = np.concatenate([self.tried, np.zeros(extra, dtype=bool)])
+        self.dist = _grown(self.dist, m, np.inf)
+        self.index = _grown(self.index, m, 0)
+        self.tried = _grown(self.tried, m, False)
+
+
+def _grown(a: np.ndarray, m: int, fill) -> np.ndarray:
+    """``a`` with at least ``m`` rows: new rows (as many as it had plus ``m``) set to ``fill``."""
+    if a.shape[0] >= m:
+        return a
+    return np.concatenate([a, np.full((a.shape[0] + m, *a.shape[1:]), fill, dtype=a.dtype)])
 
 
 def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
@@ -275,7 +280,12 @@ class RRTCoLearn:
                     tolerance=0.25 * prob.goal_tolerance, max_iterations=20)
         if res is None:
             return None
-        params = np.append(res.params, res.steps * s.dt)
+        return self._goal_edge(x0, np.append(res.params, res.steps * s.dt), lam, z0)
+
+    def _goal_edge(self, x0: np.ndarray, params: np.ndarray, lam: np.ndarray,
+                   z0: np.ndarray):
+        """The edge of ``params`` (steering parameters and duration) from ``x0``, checked
+        like every edge; None unless it reaches the goal region."""
         if not self._start_edge(x0, params, lam, z0):
             return None
         edge = self._integrate_edge(x0, params, lam, z0)
@@ -310,12 +320,9 @@ class RRTCoLearn:
             params = sys.params_from_costate(x0[None], guess[0][None])[0]
             # the continuation's extremal as it is (exact up to the interpolation between
             # RK4 steps), else polished by a forward solve
-            direct = np.append(params, max(1, round(guess[1] / s.dt)) * s.dt)
-            if self._start_edge(x0, direct, lam, z0):
-                edge = self._integrate_edge(x0, direct, lam, z0)
-                if edge is not None and edge[5]:
-                    return node, edge
-            edge = self._shoot_edge(x0, params, guess[1], s.funnel_duration, lam, z0)
+            edge = self._goal_edge(
+                x0, np.append(params, max(1, round(guess[1] / s.dt)) * s.dt), lam, z0) \
+                or self._shoot_edge(x0, params, guess[1], s.funnel_duration, lam, z0)
             if edge is not None:
                 return node, edge
         return None
@@ -366,8 +373,7 @@ class RRTCoLearn:
             target = prob.goal if to_goal else rng.uniform(sys.state_low, sys.state_high)
             m = tree.n_nodes
             if to_goal and s.goal_connect:
-                if tried.shape[0] < m:
-                    tried = np.concatenate([tried, np.zeros(tried.shape[0] + m, dtype=bool)])
+                tried = _grown(tried, m, False)
                 found = self._connect_goal(tree, shifts, tried, weight, lam, z0)
                 if found is not None:
                     goal_node = self._add_edge(tree, *found)
