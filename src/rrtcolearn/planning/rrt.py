@@ -80,6 +80,7 @@ class PlannerSettings:
 
 
 _FUNNEL_POINTS = 3  # funnel states tried per node (each on its own extremal, nearest first)
+_FUNNEL_STRETCH = 1.5  # a funnel connection may last this times the funnel's duration
 
 
 @dataclass
@@ -311,10 +312,12 @@ class RRTCoLearn:
         search.tried[node] = True
         x0 = tree.states[node]
         offset = prob.goal_offset(x0)[0]
+        # the node may be farther from the goal than the funnel state it starts from
+        longest = _FUNNEL_STRETCH * s.funnel_duration
         for q in range(_FUNNEL_POINTS):
             if not search.dist[node, q] <= s.funnel_radius:
                 break
-            guess = search.funnel.steer(offset, int(search.index[node, q]), s.funnel_duration)
+            guess = search.funnel.steer(offset, int(search.index[node, q]), longest)
             if guess is None:
                 continue
             params = sys.params_from_costate(x0[None], guess[0][None])[0]
@@ -322,7 +325,7 @@ class RRTCoLearn:
             # RK4 steps), else polished by a forward solve
             edge = self._goal_edge(
                 x0, np.append(params, max(1, round(guess[1] / s.dt)) * s.dt), lam, z0) \
-                or self._shoot_edge(x0, params, guess[1], s.funnel_duration, lam, z0)
+                or self._shoot_edge(x0, params, guess[1], longest, lam, z0)
             if edge is not None:
                 return node, edge
         return None

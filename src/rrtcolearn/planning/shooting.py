@@ -7,7 +7,7 @@ like every data segment. The learned U gives the first guess. The planner uses i
 the goal connection (``plan.goal_connect``): the last edge of a learned tree is where k-NN or
 a network is least precise, and where precision is all that counts.
 
-Each Newton iteration integrates the guess and one perturbation per costate coordinate in a
+Each Newton iteration integrates the guess and two perturbations per costate coordinate in a
 single batched RK4 call; the state at a duration between two RK4 steps is interpolated
 linearly, so the residual is continuous in T. The result's duration is rounded to the RK4
 grid, and the caller checks the edge by integrating it as any other edge.
@@ -23,7 +23,7 @@ import numpy as np
 from rrtcolearn.integrate import rollout_batch
 from rrtcolearn.systems.base import System
 
-_EPS = 1e-6  # relative finite-difference step of the costate coordinates
+_EPS = 1e-7  # relative finite-difference step of the costate coordinates
 _STEP_SIZES = (1.0, 0.5, 0.25, 0.1)  # backtracking line search, evaluated in one batch
 
 
@@ -107,14 +107,17 @@ def newton(system: System, x0: np.ndarray, lam0: np.ndarray, duration0: float,
             return v, z, state_norm, it
         if it == max_iterations:
             return None
-        # Jacobian: costates by forward differences (relative steps), duration from the
-        # state's rate (H* does not depend on it)
+        # Jacobian: costates by central differences (relative steps), duration from the
+        # state's rate (H* does not depend on it). Forward differences are not enough where
+        # the extremals are sensitive: into the acrobot's upright their truncation error
+        # made the Newton step no descent direction (README)
         eps = _EPS * np.maximum(1.0, np.abs(v[:n]))
-        probe = np.repeat(v[None], n, axis=0)
+        probe = np.repeat(v[None], 2 * n, axis=0)
         probe[np.arange(n), np.arange(n)] += eps
+        probe[n + np.arange(n), np.arange(n)] -= eps
         rp, _, _ = residual(probe)
         jac = np.empty((n + 1, n + 1))
-        jac[:, :n] = ((rp - r) / eps[:, None]).T
+        jac[:, :n] = ((rp[:n] - rp[n:]) / (2.0 * eps[:, None])).T
         jac[:n, n] = rate
         jac[n, n] = 0.0
         if not np.isfinite(jac).all():
