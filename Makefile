@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench lint clean-venv
+.PHONY: run test bench bench-systems lint clean-venv
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +20,10 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python bench/run_bench.py
+
+# the per-system figures in full (50 seeded swing-ups of at most 60 s each): about 30 minutes
+bench-systems: $(STAMP)
+	$(BIN)/python bench/systems_bench.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench
