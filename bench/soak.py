@@ -3,7 +3,8 @@
     python bench/soak.py [--queries 10000]
 
 `make bench` runs 1 000 of them, this script 10 000 by default. Tolerance 0.2 keeps a query
-short (7-66 ms CPU, by machine); each query has its own seed. Resident memory is read from
+short (10 000 took about a minute and a half on the README's faster machine, 500 took
+33 s of CPU on a slower one); each query has its own seed. Resident memory is read from
 /proc (current) and getrusage (peak) after a warm-up of 100 queries and at the end.
 """
 
