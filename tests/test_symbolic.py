@@ -172,12 +172,9 @@ def test_invalid_definitions_are_rejected(cache_dir):
 
 
 def test_pendulum_parametrisation_is_the_authors(dir_pendulum, cache_dir):
-    """The registered pendulum is the generic system with its own phi parametrisation; the
-    generated code does not depend on the parametrisation (its equations against the
-    hand-derived ones: test_pmp)."""
+    """The registered pendulum is the generic system with its own phi parametrisation (its
+    equations against the hand-derived ones: test_pmp)."""
     pend = make_pendulum()  # built in this module's cache, like dir_pendulum
-    assert pend.source == dir_pendulum.source
-    assert pend.rhs is dir_pendulum.rhs and pend.rollout_batch_jit is dir_pendulum.rollout_batch_jit
     assert pend.param_names == ("phi",) and pend.param_circular == (True,)
     assert dir_pendulum.param_names == ("d_theta", "d_omega")
     assert pend.costate_from_params is not dir_pendulum.costate_from_params
@@ -201,19 +198,24 @@ def test_pendulum_parametrisation_is_the_authors(dir_pendulum, cache_dir):
 
 
 def test_costate_parametrisation_is_validated():
-    pend = make("pendulum")
-    good = dict(names=("phi",), low=(0.0,), high=(1.0,), circular=(True,),
-                from_params=pend.costate_from_params,
-                from_params_jit=pend.costate_from_params_jit)
+    from rrtcolearn.systems.pendulum import phi_inverse, phi_line
+
+    good = dict(names=("phi",), low=(0.0,), high=(1.0,), circular=(True,), line=phi_line,
+                inverse=phi_inverse)
     cp = CostateParametrisation(**(good | {"low": np.array([0.0]), "names": ["phi"]}))
     assert cp.low == (0.0,) and cp.names == ("phi",)
     for change, match in (({"names": ()}, "at least one"),
                           ({"high": (1.0, 2.0)}, "entries"),
                           ({"high": (0.0,)}, "low < high"),
                           ({"low": (-np.inf,)}, "low < high"),
-                          ({"from_params_jit": None}, "callable")):
+                          ({"line": None}, "callable")):
         with pytest.raises(ValueError, match=match):
             CostateParametrisation(**(good | change))
+    theta, omega, u = sympy.symbols("theta omega u")
+    bad_line = CostateParametrisation(**(good | {"line": lambda x, p: ((0,), (1,), 1)}))
+    with pytest.raises(ValueError, match="2 entries"):
+        build_system("bad", [theta, omega], [u], [omega, sympy.sin(theta)], [[0], [1]],
+                     state_low=[-1, -1], state_high=[1, 1], costate_parametrisation=bad_line)
 
 
 # --------------------------------------------------------------------------- double integrator

@@ -42,6 +42,9 @@ class System:
     params_from_costate : ``(x (N,n), lambda (N,n)) -> p (N,k)``, the inverse of
         ``costate_from_params`` on H* = 0 (needed for data simulated backwards from a goal,
         whose costate is known only at the far end); None if the system has none.
+    input_low, input_high : (m,) box of the inputs (+-inf where unbounded; None: no limits).
+        With limits, u* is the minimiser of H over the box and every kernel above uses it
+        (saturated optimal control, `rrtcolearn.systems.symbolic.limit_derivation`).
     """
 
     name: str
@@ -67,6 +70,8 @@ class System:
     defaults: dict = field(default_factory=dict)
     input_scale: np.ndarray | None = None
     params_from_costate: Callable | None = None
+    input_low: np.ndarray | None = None
+    input_high: np.ndarray | None = None
 
     @property
     def metric_scale(self) -> np.ndarray:
@@ -79,6 +84,21 @@ class System:
         if self.input_scale is not None:
             return np.asarray(self.input_scale, dtype=np.float64)
         return 2.0 * np.pi / (self.state_high - self.state_low)
+
+    @property
+    def input_limited(self) -> bool:
+        """Whether some input has a finite limit (the optimal control saturates)."""
+        return bool(
+            (self.input_low is not None and np.any(np.isfinite(self.input_low)))
+            or (self.input_high is not None and np.any(np.isfinite(self.input_high))))
+
+    def input_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """(m,) lower and upper input bounds, +-inf where unbounded."""
+        m = self.n_inputs
+        low = np.full(m, -np.inf) if self.input_low is None else np.asarray(self.input_low, float)
+        high = np.full(m, np.inf) if self.input_high is None else np.asarray(self.input_high,
+                                                                              float)
+        return low, high
 
     @property
     def n_states(self) -> int:

@@ -15,7 +15,12 @@ Hamiltonian; solving H* = 0 for l_om gives):
     l_th = tan(phi),
     l_om = sin(theta) + sign(cos(phi)) * sqrt(sin(theta)^2 + 2 (w + l_th * omega)),
 
-with phi in (-pi/2, 3pi/2); a negative square-root argument means no costate exists.
+with phi in (-pi/2, 3pi/2); a negative square-root argument means no costate exists. This is
+a line in costate space, (tan(phi), 0) + t (0, 1), with the larger root of H* = 0 along it
+where cos(phi) >= 0 and the smaller one otherwise; given as that line, the same
+parametrisation holds under a torque limit (the library solves the saturated H* = 0 along it,
+`rrtcolearn.systems.symbolic.CostateParametrisation`). The inverse tells the roots apart by
+the slope of H* along the line, dH*/dl_om = omega': <= 0 at the larger root.
 """
 
 from __future__ import annotations
@@ -23,50 +28,29 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
-import numba
 import numpy as np
 
 if TYPE_CHECKING:
     from rrtcolearn.systems.symbolic import SymbolicSystem
 
-__all__ = ["costate_from_params", "costate_from_params_jit", "make_pendulum",
-           "phi_from_costate"]
+__all__ = ["make_pendulum", "phi_inverse", "phi_line"]
 
 
-def phi_from_costate(x: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """phi (N, 1) of costates (N, 2) on H* = 0: the inverse of `costate_from_params`.
+def phi_line(x, p):
+    """The line of costates of phi (sympy): (tan(phi), 0) + t (0, 1), right root where
+    cos(phi) >= 0."""
+    import sympy
 
-    l_th = tan(phi) and sign(cos(phi)) = sign(l_om - sin(theta)), so phi = atan(l_th), or that
-    plus pi on the branch where cos(phi) < 0; phi lies in [-pi/2, 3pi/2).
-    """
-    phi = np.arctan(lam[:, 0])
-    phi = np.where(lam[:, 1] - np.sin(x[:, 0]) >= 0.0, phi, phi + np.pi)
-    return phi[:, None]
+    return (sympy.tan(p[0]), 0), (0, 1), sympy.cos(p[0])
 
 
-def costate_from_params(x: np.ndarray, p: np.ndarray, w: float) -> tuple[np.ndarray, np.ndarray]:
-    """Costates (N, 2) on H* = 0 from states (N, 2) and phi (N, 1); also the (N,) valid mask."""
-    theta, omega, phi = x[:, 0], x[:, 1], p[:, 0]
-    s = np.sin(theta)
-    l_th = np.tan(phi)
-    arg = s * s + 2.0 * (w + l_th * omega)
-    valid = np.isfinite(arg) & (arg >= 0.0)
-    root = np.sqrt(np.where(valid, arg, 0.0))
-    l_om = s + np.where(np.cos(phi) >= 0.0, 1.0, -1.0) * root
-    return np.stack([l_th, l_om], axis=1), valid
+def phi_inverse(x, lam, xdot):
+    """phi of a costate on H* = 0 (sympy): atan(l_th), plus pi on the smaller root, where
+    omega' = dH*/dl_om > 0."""
+    import sympy
 
-
-@numba.njit(cache=True)
-def costate_from_params_jit(x, p, w, out):
-    """Scalar `costate_from_params` for one state: writes ``out`` (2,), False if none exists."""
-    s = math.sin(x[0])
-    l_th = math.tan(p[0])
-    arg = s * s + 2.0 * (w + l_th * x[1])
-    if not (arg >= 0.0) or not math.isfinite(arg):
-        return False
-    out[0] = l_th
-    out[1] = s + (1.0 if math.cos(p[0]) >= 0.0 else -1.0) * math.sqrt(arg)
-    return True
+    return (sympy.Piecewise((sympy.atan(lam[0]) + sympy.pi, xdot[1] > 0),
+                            (sympy.atan(lam[0]), True)),)
 
 
 def make_pendulum() -> SymbolicSystem:
@@ -83,9 +67,8 @@ def make_pendulum() -> SymbolicSystem:
         low=(-0.5 * np.pi,),
         high=(1.5 * np.pi,),
         circular=(True,),
-        from_params=costate_from_params,
-        from_params_jit=costate_from_params_jit,
-        to_params=phi_from_costate,
+        line=phi_line,
+        inverse=phi_inverse,
     )
     return build_system(
         "pendulum",
