@@ -208,7 +208,8 @@ def _plan_summary(p) -> dict:
     return {"status": p.status, "solved": p.solved, "iterations": p.iterations,
             "nodes": p.nodes, "path_cost": round(p.path_cost, 4),
             "path_duration": round(p.path_duration, 3),
-            "max_abs_u": round(p.max_abs_u, 4), "u_max": p.u_max,
+            "max_abs_u": round(p.max_abs_u, 4), "u_max": p.symmetric_limit,
+            "limit_mode": p.limit_mode,
             "planning_cpu_s": round(p.planning_cpu_s, 4),
             **({"goal_connected": p.extra["connection"] or False}
                if "goal_connected" in p.extra else {})}
@@ -337,7 +338,6 @@ def plan(
         cfg = add_obstacles(cfg, list(obstacle or []))
         start_x, goal_x = pipeline.query_states(cfg, system)
         PlanningProblem.create(system, start_x, goal_x, cfg.plan.goal_tolerance,
-                               u_max=cfg.system.u_max,
                                obstacles=[o.model_dump() for o in cfg.plan.obstacles])
         out_path = out if out is not None else run_dir / "plan.json"
         if out_path.is_dir():

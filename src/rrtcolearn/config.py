@@ -45,8 +45,52 @@ class SystemConfig(_Section):
         None, description="weights of the state coordinates in learning distances (default: "
         "2*pi / sampling range, all 1 for the pendulum)")
     time_weight: float = Field(1.0, gt=0, description="w in the running cost w + u^2/2")
-    u_max: float | None = Field(None, gt=0, description="torque limit |u| <= u_max (none: "
-                                "unbounded, the paper's setting)")
+    u_max: float | list[float] | None = Field(
+        None, description="input limit |u_i| <= u_max (one value, or one per input; none: "
+        "the system's own limits, unbounded for the paper's pendulum)")
+    u_low: list[float] | None = Field(
+        None, description="asymmetric input limits u_low <= u <= u_high, one per input "
+        "(instead of u_max)")
+    u_high: list[float] | None = None
+    limit_mode: Literal["saturate", "truncate"] = Field(
+        "saturate", description="how limits enter: Pontryagin over the input box (saturated "
+        "optimal control, every extremal feasible) or unconstrained extremals truncated at "
+        "their first violation (scalar u_max only; kept for comparison)")
+
+    @model_validator(mode="after")
+    def _limits(self) -> SystemConfig:
+        umax = self.u_max
+        values = [] if umax is None else (umax if isinstance(umax, list) else [umax])
+        if any(not v > 0 for v in values) or (isinstance(umax, list) and not umax):
+            raise ValueError("u_max must be positive (one value, or one per input)")
+        if umax is not None and (self.u_low is not None or self.u_high is not None):
+            raise ValueError("give either u_max or u_low/u_high, not both")
+        if (self.u_low is None) != (self.u_high is None):
+            raise ValueError("u_low and u_high go together (use -inf/inf as large numbers, "
+                             "e.g. -1e9, for an unbounded side)")
+        if self.u_low is not None:
+            if len(self.u_low) != len(self.u_high) or any(
+                    lo >= hi for lo, hi in zip(self.u_low, self.u_high, strict=False)):
+                raise ValueError("u_low and u_high need one value per input with u_low < u_high")
+        if self.limit_mode == "truncate" and (self.u_low is not None
+                                              or isinstance(umax, list)):
+            raise ValueError("limit_mode = 'truncate' supports a single symmetric u_max only")
+        return self
+
+    def input_bounds(self) -> tuple[list[float], list[float]] | None:
+        """The configured (low, high) input limits, or None when the config sets none."""
+        if self.u_low is not None:
+            return list(self.u_low), list(self.u_high)
+        if self.u_max is None:
+            return None
+        umax = self.u_max if isinstance(self.u_max, list) else [self.u_max]
+        return [-v for v in umax], list(umax)
+
+    @property
+    def truncation_limit(self) -> float | None:
+        """The |u| bound at which unconstrained extremals are cut (limit_mode 'truncate')."""
+        return float(self.u_max) if self.limit_mode == "truncate" and self.u_max is not None \
+            else None
 
 
 class GenerateConfig(_Section):
@@ -170,7 +214,8 @@ class PlanConfig(_Section):
         0.0, ge=0, le=100, description="funnel states less than this time (s) from the goal "
         "are dropped (where the boundary value problem from near them is ill-conditioned)")
     input_limit: Literal["reject", "cut"] = Field(
-        "reject", description="an edge whose input exceeds u_max is rejected, or cut before it")
+        "reject", description="with system.limit_mode = 'truncate': an edge whose input "
+        "exceeds u_max is rejected, or cut before it")
 
 
 class ProblemSpec(_Section):

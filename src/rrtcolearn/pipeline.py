@@ -92,11 +92,30 @@ def build_system(config: Config) -> System:
                               f"values, got {scale}")
         changes["input_scale"] = np.asarray(scale, dtype=np.float64)
     system = dataclasses.replace(system, **changes)
+    system = _with_configured_limits(config, system)
     if np.any(system.state_low >= system.state_high):
         raise ConfigError("config: generate.state_low must be below state_high")
     if np.any(system.param_low >= system.param_high):
         raise ConfigError("config: generate.param_low must be below param_high")
     return system
+
+
+def _with_configured_limits(config: Config, system: System) -> System:
+    """``system`` with the configured input limits: saturated optimal control over the input
+    box, or (limit_mode 'truncate') the unconstrained system whose extremals are cut at u_max.
+    Without configured limits the system keeps its own."""
+    sc = config.system
+    bounds = sc.input_bounds()
+    if sc.limit_mode == "truncate":
+        bounds = (None, None) if system.input_limited else None
+    if bounds is None:
+        return system
+    from rrtcolearn.systems.symbolic import with_input_limits
+
+    try:
+        return with_input_limits(system, *bounds)
+    except ValueError as exc:
+        raise ConfigError(f"config: system input limits: {exc}") from None
 
 
 def _meta(config: Config, system: System, **extra) -> dict:
@@ -159,7 +178,7 @@ def generate(config: Config, run_dir: str | Path,
         system, seed_stream(config.seed, "generate"), g.n_simulations,
         time_weight=config.system.time_weight, dt=g.dt, max_cost=g.max_cost,
         max_state_distance=g.max_state_distance, chunk_size=g.chunk_size,
-        u_max=config.system.u_max, max_duration=g.max_duration,
+        u_max=config.system.truncation_limit, max_duration=g.max_duration,
         goal_simulations=g.goal_simulations, goal=_data_goal(config, system))
     shards = ShardStore(run_dir / "shards" / "generate", key, len(tasks))
     parts: list = [shards.load(t.chunk, system.name) for t in tasks]
@@ -405,11 +424,28 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
     """Plan one query with a fitted model (Alg. 1).
 
     ``u_max`` and ``obstacles`` default to the configuration's (``config`` or the model's);
-    ``is_valid(states) -> bool array`` adds a user state validity checker.
+    ``is_valid(states) -> bool array`` adds a user state validity checker. A model whose
+    system saturates its inputs plans within the limits it learned with (a different
+    ``u_max`` needs a model trained for it: ConfigError); a model of the unbounded system
+    plans under ``u_max`` by truncation (edges whose input exceeds it are rejected or cut,
+    plan.input_limit).
     """
     cfg = config or model.config
     if u_max is _FROM_CONFIG:
         u_max = cfg.system.u_max
+    if model.system.input_limited:
+        low, high = model.system.input_limits()
+        if u_max is not None:
+            wanted = np.broadcast_to(np.asarray(u_max, dtype=float), low.shape)
+            if not (np.array_equal(-low, high) and np.array_equal(high, wanted)):
+                raise ConfigError(
+                    f"u_max {u_max}: the model saturates its inputs in [{low.tolist()}, "
+                    f"{high.tolist()}] (learned from its data); train a model with that "
+                    "limit (system.u_max)")
+        u_max = None
+    elif isinstance(u_max, list):
+        raise ConfigError("a model of the unbounded system can plan under a single u_max "
+                          "only (by truncation); train a model with the limits instead")
     if obstacles is _FROM_CONFIG:
         obstacles = [o.model_dump() for o in cfg.plan.obstacles]
     problem = PlanningProblem.create(model.system, start, goal, goal_tolerance, u_max=u_max,

@@ -92,7 +92,7 @@ def plot_tree(ax, plan: Plan, *, max_edges: int | None = None,
     xl, yl = labels or (r"$\theta$ [rad]", r"$\omega$ [rad/s]")
     ax.set_xlabel(xl)
     ax.set_ylabel(yl)
-    limit = f", |u| <= {plan.u_max:g}" if plan.u_max is not None else ""
+    limit = f", |u| <= {plan.symmetric_limit:g}" if plan.symmetric_limit is not None else ""
     ax.set_title(f"{plan.system}{limit}: {plan.status}, {plan.nodes} nodes, "
                  f"{plan.iterations} iterations")
     ax.legend(loc="best", fontsize=8)

@@ -461,6 +461,8 @@ class RRTCoLearn:
             goal_tolerance=prob.goal_tolerance, time_weight=s.time_weight, dt=s.dt,
             status=status, planning_time_s=wall, planning_cpu_s=cpu, iterations=iterations,
             tree=tree, path_nodes=tree.path_to(end), u_max=prob.u_max,
+            input_low=sys.input_limits()[0] if sys.input_limited else None,
+            input_high=sys.input_limits()[1] if sys.input_limited else None,
             obstacles=[o.to_dict() for o in prob.validity.obstacles],
             goal_angles=prob.goal_angles,
             # which edge reached the goal: the learned steering's, or a connection's

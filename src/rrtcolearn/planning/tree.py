@@ -79,10 +79,30 @@ class Plan:
     iterations: int
     tree: PlannerData
     path_nodes: list[int] = field(default_factory=list)
-    u_max: float | None = None
+    u_max: float | None = None  # truncation bound (unconstrained extremals cut at |u| = u_max)
     obstacles: list[dict] = field(default_factory=list)
     extra: dict = field(default_factory=dict)
     goal_angles: tuple[int, ...] = ()  # angle coordinates compared modulo a turn at the goal
+    # (m,) input box of a saturated system: every edge's u* = clip(-R^-1 B^T lambda, low, high)
+    input_low: np.ndarray | None = None
+    input_high: np.ndarray | None = None
+
+    @property
+    def limit_mode(self) -> str | None:
+        """"saturate" (Pontryagin over the input box), "truncate" or None (unbounded)."""
+        if self.input_low is not None:
+            return "saturate"
+        return "truncate" if self.u_max is not None else None
+
+    @property
+    def symmetric_limit(self) -> float | None:
+        """The single bound |u_i| <= u for every input, if the limits are of that form."""
+        if self.input_low is None:
+            return self.u_max
+        lo, hi = np.asarray(self.input_low), np.asarray(self.input_high)
+        if np.all(hi == hi[0]) and np.array_equal(-lo, hi) and np.isfinite(hi[0]):
+            return float(hi[0])
+        return None
 
     @property
     def solved(self) -> bool:
@@ -148,7 +168,10 @@ class Plan:
             "nodes": n,
             "path_cost": self.path_cost,
             "path_duration": self.path_duration,
-            "u_max": self.u_max,
+            "u_max": self.symmetric_limit,
+            "limit_mode": self.limit_mode,
+            "input_low": _finite_or_none(self.input_low),
+            "input_high": _finite_or_none(self.input_high),
             "max_abs_u": self.max_abs_u,
             "obstacles": self.obstacles,
             "goal_angles": list(self.goal_angles),
@@ -157,3 +180,10 @@ class Plan:
             "path": self.edges(),
             "tree": {"states": t.states[:n].tolist(), "parents": t.parents[:n].tolist()},
         }
+
+
+def _finite_or_none(a: np.ndarray | None) -> list[float | None] | None:
+    """A JSON-safe list: unbounded (infinite) entries as null."""
+    if a is None:
+        return None
+    return [float(v) if np.isfinite(v) else None for v in np.asarray(a, dtype=float)]
