@@ -212,7 +212,8 @@ def _plan_summary(p) -> dict:
             "limit_mode": p.limit_mode,
             "planning_cpu_s": round(p.planning_cpu_s, 4),
             **({"goal_connected": p.extra["connection"] or False}
-               if "goal_connected" in p.extra else {})}
+               if "goal_connected" in p.extra else {}),
+            **({"diagnosis": p.extra["diagnosis"]} if "diagnosis" in p.extra else {})}
 
 
 def _print_summary(title: str, figures: dict) -> None:

@@ -213,6 +213,9 @@ class PlanConfig(_Section):
     funnel_min_duration: float = Field(
         0.0, ge=0, le=100, description="funnel states less than this time (s) from the goal "
         "are dropped (where the boundary value problem from near them is ill-conditioned)")
+    stall_iterations: int = Field(
+        10_000, ge=0, description="stop early when this many iterations in a row added no "
+        "node, with a diagnosis of what rejected them (0: never)")
     input_limit: Literal["reject", "cut"] = Field(
         "reject", description="with system.limit_mode = 'truncate': an edge whose input "
         "exceeds u_max is rejected, or cut before it")

@@ -265,7 +265,8 @@ class FittedModel:
             else p.connect_reach,
             goal_funnel=p.goal_funnel, funnel_radius=p.funnel_radius,
             funnel_duration=p.funnel_duration, funnel_min_duration=p.funnel_min_duration,
-            funnel_max_cost=self.config.generate.max_cost)
+            funnel_max_cost=self.config.generate.max_cost,
+            stall_iterations=p.stall_iterations)
 
 
 def fit_functions(system: System, data: Dataset, config: Config, *,

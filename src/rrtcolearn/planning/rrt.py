@@ -53,6 +53,8 @@ class PlannerSettings:
     funnel_radius : nodes farther than this (weighted) from every funnel state are not tried.
     funnel_duration, funnel_max_cost : the funnel's extremals end after this time or cost.
     funnel_min_duration : funnel states less than this time from the goal are dropped.
+    stall_iterations : stop when this many iterations in a row added no node (0: never); the
+        plan then says what rejected the candidates (`diagnose`).
     """
 
     time_weight: float = 1.0
@@ -77,6 +79,55 @@ class PlannerSettings:
     funnel_duration: float = 3.0
     funnel_min_duration: float = 0.0
     funnel_max_cost: float = np.inf
+    stall_iterations: int = 10_000
+
+
+# what became of an iteration: no node within reach of the target, V rejected every
+# (node, target) query, or the draw gave no edge (why), or an edge was added
+OUTCOMES = ("added", "out_of_reach", "invalid_query", "no_costate", "input_limit",
+            "state_box", "obstacle", "nonfinite")
+
+_ADVICE = {
+    "out_of_reach": "random targets lie beyond the data's reach of every node: widen "
+                    "generate.max_state_distance or set plan.extend_distance",
+    "invalid_query": "the validity model V rejects the queries from the tree (the data do "
+                     "not cover these states): check that the start lies in the sampling box, "
+                     "generate more simulations or raise learn.validity_threshold (with "
+                     "limit_mode 'truncate', extremals that break the limit at once leave no "
+                     "data: use 'saturate')",
+    "no_costate": "the steering parameters drawn around U's prediction give no costate on "
+                  "H* = 0 (with tight input limits many directions have none): raise "
+                  "plan.sigma or generate more data near the start",
+    "input_limit": "edges break the input limit: plan with system.limit_mode = 'saturate' "
+                   "(the default; the optimal control then rides the limit)",
+    "state_box": "edges leave the state box in a non-angle coordinate: widen the box "
+                 "(generate.state_low/state_high) so that it holds the motion",
+    "obstacle": "edges run into obstacles at once: the start is boxed in, or the obstacles "
+                "are thicker than the data's segments are long",
+    "nonfinite": "integration overflowed: the dynamics blow up in the box, lower generate.dt",
+}
+
+
+def diagnose(outcomes: dict, stalled: bool, nodes: int, truncating: bool) -> str:
+    """One line: why an unsolved plan stopped and what most often rejected a candidate."""
+    failed = {k: v for k, v in outcomes.items() if k != "added" and v}
+    total = sum(outcomes.values())
+    if not failed:
+        return "no iteration ran: raise the time or iteration limit"
+    # targets out of reach are the normal lot of a small tree: name them only when nothing
+    # else failed
+    named = {k: v for k, v in failed.items() if k != "out_of_reach"} or failed
+    worst = max(named, key=named.get)
+    share = failed[worst] / max(total, 1)
+    head = (f"the tree stopped growing ({nodes} node{'s' if nodes != 1 else ''}, no new "
+            "node for plan.stall_iterations iterations)" if stalled
+            else f"limit reached with {nodes} node{'s' if nodes != 1 else ''}")
+    advice = _ADVICE[worst]
+    if worst == "input_limit" and not truncating:
+        advice = "edges were cut at once by input limits"
+    if worst == "invalid_query" and not truncating:
+        advice = advice.split(" (with limit_mode")[0]
+    return f"{head}; {share:.0%} of {total} iterations: {worst.replace('_', ' ')} — {advice}"
 
 
 _FUNNEL_POINTS = 3  # funnel states tried per node (each on its own extremal, nearest first)
@@ -132,6 +183,7 @@ class RRTCoLearn:
         self.problem = problem
         self.model = model
         self.settings = settings or PlannerSettings()
+        self._rejected = "no_costate"  # why the last draw gave no edge (OUTCOMES)
         sys = problem.system
         if (self.settings.goal_connect or self.settings.goal_funnel) and \
                 sys.params_from_costate is None:
@@ -177,6 +229,7 @@ class RRTCoLearn:
         or None when the draw gives no edge."""
         # redraw parameters whose costate does not exist or whose input already breaks
         # the limit at the start: such an edge would be rejected without integrating it
+        self._rejected = "no_costate"
         for _ in range(self.settings.max_resample):
             params = self._sample_params(rng, prediction, sigma)
             if self._start_edge(x0, params, lam, z0):
@@ -193,7 +246,10 @@ class RRTCoLearn:
         if not sys.costate_from_params_jit(x0, params[:-1], s.time_weight, lam):
             return False
         z0[n : 2 * n] = lam
-        return u_max is None or sys.input_max_abs_jit(z0) <= u_max
+        if u_max is not None and sys.input_max_abs_jit(z0) > u_max:
+            self._rejected = "input_limit"
+            return False
+        return True
 
     def _integrate_edge(self, x0: np.ndarray, params: np.ndarray, lam: np.ndarray,
                         z0: np.ndarray):
@@ -204,6 +260,7 @@ class RRTCoLearn:
         traj = rollout(sys, z0, s.time_weight, s.dt, steps)
         # non-finite values propagate to the last RK4 step, so checking it suffices
         if not np.isfinite(traj[-1]).all():
+            self._rejected = "nonfinite"
             return None
         path = traj[1:, :n]
         bounded = sys.bounded_dims
@@ -211,6 +268,7 @@ class RRTCoLearn:
             pb = path[:, bounded]
             if (pb.min(axis=0) < sys.state_low[bounded]).any() or \
                     (pb.max(axis=0) > sys.state_high[bounded]).any():
+                self._rejected = "state_box"
                 return None
         end = steps
         if prob.validity:
@@ -228,6 +286,7 @@ class RRTCoLearn:
         if hit.size:
             end = int(hit[0]) + 1
         if end == 0:
+            self._rejected = "obstacle" if prob.validity else "input_limit"
             return None
         if end < steps:
             traj = traj[: end + 1]
@@ -235,6 +294,7 @@ class RRTCoLearn:
             params[-1] = steps * s.dt
         u_abs = float(u_all[: steps + 1].max())
         if u_max is not None and u_abs > u_max:
+            self._rejected = "input_limit"
             return None
         return traj, params, lam.copy(), steps, u_abs, bool(hit.size)
 
@@ -356,6 +416,10 @@ class RRTCoLearn:
         extend = np.isfinite(s.extend_distance)
         weight = np.ones(n) if s.metric_scale is None else np.asarray(s.metric_scale)
         iterations = 0
+        # what became of each iteration (`diagnose`), and when the tree last grew
+        outcomes = dict.fromkeys(OUTCOMES, 0)
+        last_growth = 0
+        stalled = False
         cpu0 = time.thread_time()
         termination.start()
         search = None
@@ -371,6 +435,9 @@ class RRTCoLearn:
         if prob.goal_distance(prob.start)[0] <= prob.goal_tolerance:
             goal_node = 0
         while goal_node < 0 and not termination(iterations):
+            if s.stall_iterations and iterations - last_growth >= s.stall_iterations:
+                stalled = True
+                break
             iterations += 1
             to_goal = rng.random() < s.goal_bias
             target = prob.goal if to_goal else rng.uniform(sys.state_low, sys.state_high)
@@ -400,6 +467,7 @@ class RRTCoLearn:
                 target_rows = None
             near = np.flatnonzero(np.einsum("ij,ij->i", diff, diff) <= reach2)
             if near.size == 0:
+                outcomes["out_of_reach"] += 1
                 continue
             if near.size > s.max_candidates:
                 # the nearest (weighted) nodes only: bounds the neighbour queries per iteration
@@ -411,6 +479,7 @@ class RRTCoLearn:
                                                          target_rows[near]) + sh], axis=1)
             rows, cost, neighbours = self.model.query_valid(query)
             if rows.size == 0:
+                outcomes["invalid_query"] += 1
                 continue
             best = int(np.argmin(cost))
             parent = int(near[rows[best]])
@@ -440,7 +509,10 @@ class RRTCoLearn:
                         traj_c[:, :n], traj_c[:, n : 2 * n])).max())
                     edge = (traj_c, params_c, cand[2], k + 1, u_c, False)
             if edge is None:
+                outcomes[self._rejected] += 1
                 continue
+            outcomes["added"] += 1
+            last_growth = iterations
             node = self._add_edge(tree, parent, edge)
             traj, hit = edge[0], edge[5]
             if node == shifts.shape[0]:
@@ -466,7 +538,10 @@ class RRTCoLearn:
             obstacles=[o.to_dict() for o in prob.validity.obstacles],
             goal_angles=prob.goal_angles,
             # which edge reached the goal: the learned steering's, or a connection's
-            extra={"goal_connected": connection is not None, "connection": connection,
-                   **({"funnel_states": len(search.funnel)} if search else {})}
-            if s.goal_connect or search else {},
+            extra={**({"goal_connected": connection is not None, "connection": connection,
+                       **({"funnel_states": len(search.funnel)} if search else {})}
+                      if s.goal_connect or search else {}),
+                   "outcomes": outcomes, "stalled": stalled,
+                   **({} if goal_node >= 0 else {"diagnosis": diagnose(
+                       outcomes, stalled, tree.n_nodes, prob.u_max is not None)})},
         )
