@@ -203,3 +203,16 @@ def test_two_input_asymmetric_limits_plan_and_resimulate(tmp_path, monkeypatch):
                         round(e["duration"] / d["dt"]))
         u = np.array(inputs)
         assert np.all(u >= np.array(LOW)) and np.all(u <= np.array(HIGH))
+
+
+def test_limits_need_a_diagonal_input_weight():
+    from rrtcolearn.systems.symbolic import build_system
+
+    x, y, u1, u2 = sympy.symbols("x y u1 u2", real=True)
+    kwargs = dict(state_low=[-1.0, -1.0], state_high=[1.0, 1.0])
+    with pytest.raises(ValueError, match="diagonal R"):
+        build_system("coupled", [x, y], [u1, u2], [0, 0], [[1, 0], [0, 1]],
+                     [[2, 1], [1, 2]], input_low=-1.0, input_high=1.0, **kwargs)
+    # without limits a coupled R is fine
+    build_system("coupled", [x, y], [u1, u2], [0, 0], [[1, 0], [0, 1]], [[2, 1], [1, 2]],
+                 **kwargs)
