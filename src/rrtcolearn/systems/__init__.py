@@ -93,6 +93,12 @@ def _acrobot() -> System:
     return make_acrobot()
 
 
+def _quadrotor() -> System:
+    from rrtcolearn.systems.quadrotor import make_quadrotor
+
+    return make_quadrotor()
+
+
 # Recommended configurations: the pendulum's are the package defaults (the paper's); the
 # others were chosen by measurement (README "Other systems", bench/systems_bench.py).
 _HIGHER_DIMENSIONAL_PLAN = {
@@ -125,5 +131,6 @@ register("acrobot", _acrobot, {
     # goal kept; README)
     "plan": {**_HIGHER_DIMENSIONAL_PLAN, "goal_funnel": 60_000, "funnel_min_duration": 1.0},
 })
+register("quadrotor", _quadrotor)
 
 __all__ = ["System", "list_systems", "make", "recommended_config", "register"]
