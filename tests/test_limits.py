@@ -216,3 +216,21 @@ def test_limits_need_a_diagonal_input_weight():
     # without limits a coupled R is fine
     build_system("coupled", [x, y], [u1, u2], [0, 0], [[1, 0], [0, 1]], [[2, 1], [1, 2]],
                  **kwargs)
+
+
+def test_saturated_data_do_not_depend_on_workers():
+    """A re-derived (limited) system pickles to spawned workers as its generated source."""
+    from rrtcolearn.data.generate import generate_data
+    from rrtcolearn.parallel import ExecutionSettings
+
+    cfg = load_config(overrides=["system.u_max=0.5"])
+    system = pipeline.build_system(cfg)
+    serial, _ = generate_data(system, 3, 600, chunk_size=150, time_weight=1.0)
+    spawned, _ = generate_data(system, 3, 600, chunk_size=150, time_weight=1.0,
+                               settings=ExecutionSettings("processes", 2))
+    assert len(serial) > 1000
+    for name in ("x0", "x1", "cost", "params", "duration", "costate", "simulation"):
+        np.testing.assert_array_equal(getattr(serial, name), getattr(spawned, name))
+    lam, x0 = serial.costate, serial.x0
+    u = system.optimal_control(x0, lam)
+    assert np.all(np.abs(u) <= 0.5) and np.any(np.abs(u) == 0.5)
