@@ -86,3 +86,27 @@ def test_bad_parameters_are_refused(small_dataset):
         clean_indices(small_dataset.inputs, small_dataset.cost, d=0.0)
     with pytest.raises(ValueError, match="unknown cleaning method"):
         clean_indices(small_dataset.inputs, small_dataset.cost, method="fast")
+
+
+def test_kdtree_neighbour_lists_match_the_grid():
+    """Inputs of many dimensions (a 6-state system's 12) are cleaned with k-d tree neighbour
+    lists: the same lists, in the same order, as the grid's where both work."""
+    from rrtcolearn.data import clean as C
+
+    rng = np.random.default_rng(0)
+    for dim, extent in ((4, 1.0), (8, 0.25)):
+        pts = rng.uniform(0.0, extent, (5000, dim))
+        g = C._Grid(pts, 0.05)
+        cap = 8 * len(pts) + 16
+        idx = np.empty(cap, dtype=np.int64)
+        indptr, fill = C._neighbour_lists(g.points, g.table_keys, g.table_cells, g.cell_starts,
+                                          g.lo, g.cell, g.dims, 0.05, idx, np.empty(cap))
+        assert fill > 30
+        kd_indptr, kd_idx = C._neighbour_lists_kdtree(g.points, 0.05)
+        np.testing.assert_array_equal(kd_indptr, indptr)
+        np.testing.assert_array_equal(kd_idx, idx[:fill])
+    # 12 dimensions over a wide extent: the grid cannot number its cells, cleaning still runs
+    pts = rng.uniform(-50.0, 50.0, (3000, 12))
+    pts[1] = pts[0] + 0.01
+    res = C.clean_indices(pts, rng.random(3000), d=0.05, method="greedy")
+    assert res.keep.sum() == 2999

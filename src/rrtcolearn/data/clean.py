@@ -52,6 +52,43 @@ class _Grid:
         self.dims = dims.astype(np.int64)
         self.table_keys, self.table_cells = _build_table(self.cell_keys)
 
+    @classmethod
+    def or_none(cls, points: np.ndarray, radius: float) -> _Grid | None:
+        """The grid, or None when its cells cannot be numbered in 63 bits."""
+        try:
+            return cls(points, radius)
+        except ValueError:
+            return None
+
+
+# a query visits 2^D cells: beyond this many input dimensions a k-d tree is cheaper (the
+# 8-D inputs of the 4-state systems keep the grid)
+_GRID_MAX_DIM = 10
+
+
+def _neighbour_lists_kdtree(points: np.ndarray, radius: float
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """The CSR lists of `_neighbour_lists` (neighbours closer than ``radius``, nearest first,
+    ties by index) from scipy's k-d tree, for inputs of many dimensions."""
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
+    if len(pairs):
+        diff = points[pairs[:, 0]] - points[pairs[:, 1]]
+        d2 = np.einsum("ij,ij->i", diff, diff)
+        keep = d2 < radius * radius
+        pairs, d2 = pairs[keep], d2[keep]
+    else:
+        d2 = np.empty(0)
+    rows = np.concatenate([pairs[:, 0], pairs[:, 1]]).astype(np.int64)
+    cols = np.concatenate([pairs[:, 1], pairs[:, 0]]).astype(np.int64)
+    dist = np.concatenate([d2, d2])
+    order = np.lexsort((cols, dist, rows))
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
+    return indptr, cols[order]
+
 
 _HASH_MULT = np.uint64(0x9E3779B97F4A7C15)
 
@@ -234,20 +271,27 @@ def clean_indices(
     if d <= 0:
         raise ValueError("cleaning radius d must be positive")
     n = len(cost)
-    grid = _Grid(np.asarray(inputs, dtype=np.float64), d)
-    cost_s = np.ascontiguousarray(cost[grid.order], dtype=np.float64)
+    points = np.asarray(inputs, dtype=np.float64)
+    grid = None if points.shape[1] > _GRID_MAX_DIM else _Grid.or_none(points, d)
+    if grid is None:
+        # many dimensions (a cell's 2^D neighbours) or a grid too fine: a k-d tree instead
+        perm = np.arange(n)
+        indptr, indices = _neighbour_lists_kdtree(points, float(d))
+    else:
+        perm = grid.order
+        capacity = 8 * n + 16
+        while True:
+            indices = np.empty(capacity, dtype=np.int64)
+            indptr, fill = _neighbour_lists(grid.points, grid.table_keys, grid.table_cells,
+                                            grid.cell_starts, grid.lo, grid.cell, grid.dims,
+                                            float(d), indices, np.empty(capacity))
+            if fill >= 0:
+                break
+            capacity *= 4
+        indices = indices[:fill]
+    cost_s = np.ascontiguousarray(cost[perm], dtype=np.float64)
     removed = np.empty(n, dtype=np.int64)
     removed_by = np.empty(n, dtype=np.int64)
-    capacity = 8 * n + 16
-    while True:
-        indices = np.empty(capacity, dtype=np.int64)
-        indptr, fill = _neighbour_lists(grid.points, grid.table_keys, grid.table_cells,
-                                        grid.cell_starts, grid.lo, grid.cell, grid.dims,
-                                        float(d), indices, np.empty(capacity))
-        if fill >= 0:
-            break
-        capacity *= 4
-    indices = indices[:fill]
     draws = 0
     if method == "randomized":
         alive = np.ones(n, dtype=np.bool_)
@@ -272,11 +316,11 @@ def clean_indices(
     else:
         raise ValueError(f"unknown cleaning method {method!r}; use 'randomized' or 'greedy'")
     keep = np.empty(n, dtype=np.bool_)
-    keep[grid.order] = kept_sorted
+    keep[perm] = kept_sorted
     return CleaningResult(
         keep=keep,
-        removed=grid.order[removed[:n_removed]],
-        removed_by=grid.order[removed_by[:n_removed]],
+        removed=perm[removed[:n_removed]],
+        removed_by=perm[removed_by[:n_removed]],
         draws=draws,
     )
 
