@@ -1,0 +1,147 @@
+"""sparse_rrt's acrobot benchmark (`two_link_acrobot`), typed in through `build_system`.
+
+Source: /work/shared/problems/EXTERNAL.md (sparse_rrt, Littlefield, Li, Bekris;
+src/systems/two_link_acrobot.cpp there), the model as sparse_rrt ships it, its "extra" terms
+included. State (theta1, theta2, theta1', theta2'), theta1 = 0 hanging, both angles wrapping;
+m = 1, l = 1, lc = 0.5, lc2 = 0.25, l2 = 1, I1 = 0.2, I2 = 1.0, g = 9.8, t1 = theta1 - pi/2,
+t2 = theta2, elbow torque tau:
+
+    d11 = m lc2 + m (l2 + lc2 + 2 l lc cos t2) + I1 + I2,   d22 = m lc2 + I2,
+    d12 = d21 = m (lc2 + l lc cos t2) + I2
+    c1 = -m l lc theta2'^2 sin t2 - 2 m l lc theta1' theta2' sin t2,  c2 = m l lc theta1'^2 sin t2
+    g1 = (m lc + m l) g cos t1 + m lc g cos(t1 + t2),  g2 = m lc g cos(t1 + t2)
+    u1 = -0.1 theta1',  u2 = tau - 0.1 theta2'
+    theta1'' = (d22 (u1 - c1 - g1) - d12 (u2 - c2 - g2)) / (d11 d22 - d12 d21)
+    theta2'' = (d11 (u2 - c2 - g2) - d21 (u1 - c1 - g1)) / (d11 d22 - d12 d21)
+
+input-affine in tau: B = (0, 0, -d12, d11) / (d11 d22 - d12^2). It is a mechanical system
+with mass matrix [[d11, d12], [d12, d22]] and potential V = (m lc + m l) g sin t1
++ m lc g sin(t1 + t2) (c1, c2 are its Christoffel terms), so E = q'^T D q' / 2 + V changes at
+the rate theta2' tau - 0.1 (theta1'^2 + theta2'^2) (tests/test_external_problems.py).
+Limits |tau| <= 4 (saturated optimal control), |theta1'|, |theta2'| <= 6; sampling box
+theta1, theta2 in [-pi, pi] (sparse_rrt's wrapping interval) and the velocity bounds;
+R = 1 (identity), default time weight.
+
+The goal is NOT sparse_rrt's. sparse_rrt's goal test is in task space: the end effector
+(x, y) = 20 (cos t1 + cos(t1 + t2), sin t1 + sin(t1 + t2)) within distance 2 of the goal's
+(theta1 = 3.14, theta2 = 0), velocities free. rrtcolearn has no task-space goal region, nor a
+ball over some coordinates only: its goal test is a Euclidean ball over all coordinates (angles
+wrapped with plan.wrap_goal). The closest supported goal used here is the largest such ball
+inside sparse_rrt's region: goal (3.14, 0, 0, 0), radius `GOAL_RADIUS` = 0.0447 with angles
+wrapped (to first order the region is |2 dtheta1 + dtheta2| <= 0.1 about the upright, whose
+inscribed disc has radius 0.1 / sqrt(5) = 0.04472). That ball also asks for the velocities to
+be within 0.0447 of zero: a swing-up that comes to rest upright, far harder than sparse_rrt's
+(which only has to pass the end effector through the region at any speed). Results on this
+goal are not comparable with sparse_rrt's figure; docs/external_problems.md.
+
+Other differences: sparse_rrt clamps the velocities after every Euler step, rrtcolearn treats
+the bounds as state constraints (`make_acrobot_wide` widens them by 50% for the sensitivity
+row), and the box is also the data's sampling box (plan.state_low/high not on main yet).
+
+Run it (from the repository root, so that `examples` is importable)::
+
+    rrtcolearn run --system examples.sparse_rrt_acrobot:make_acrobot \\
+        --set plan.time_limit=60 --set plan.goal_tolerance=0.0447 --set plan.wrap_goal=true
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import sympy
+
+from rrtcolearn.systems.symbolic import SymbolicSystem, build_system
+
+PARAMETERS = {"m": 1.0, "l": 1.0, "lc": 0.5, "lc2": 0.25, "l2": 1.0, "I1": 0.2, "I2": 1.0,
+              "g": 9.8}
+DAMPING = 0.1
+TORQUE_LIMIT = 4.0
+VELOCITY_BOUND = 6.0
+START = [0.0, 0.0, 0.0, 0.0]
+GOAL = [3.14, 0.0, 0.0, 0.0]
+# largest Euclidean ball over all four coordinates (angles wrapped) inside sparse_rrt's goal
+# region (end effector at L = 20 within 2 of the goal's); tests/test_external_problems.py
+GOAL_RADIUS = 0.0447
+LINK_LENGTH_TASK = 20.0
+TASK_GOAL_RADIUS = 2.0
+
+
+def acrobot_equations(damping: float = DAMPING):
+    """(states, input, drift a(x), input matrix B(x), parameter symbols) as sympy objects;
+    ``damping`` is the coefficient of the -damping * theta' terms in u1, u2."""
+    q1, q2, dq1, dq2, tau = sympy.symbols("theta1 theta2 dtheta1 dtheta2 tau", real=True)
+    m, ell, lc, lc2, l2, i1, i2, g = sympy.symbols("m l lc lc2 l2 I1 I2 g", positive=True)
+    t1, t2 = q1 - sympy.pi / 2, q2
+    d11 = m * lc2 + m * (l2 + lc2 + 2 * ell * lc * sympy.cos(t2)) + i1 + i2
+    d22 = m * lc2 + i2
+    d12 = d21 = m * (lc2 + ell * lc * sympy.cos(t2)) + i2
+    c1 = -m * ell * lc * dq2**2 * sympy.sin(t2) - 2 * m * ell * lc * dq1 * dq2 * sympy.sin(t2)
+    c2 = m * ell * lc * dq1**2 * sympy.sin(t2)
+    g1 = (m * lc + m * ell) * g * sympy.cos(t1) + m * lc * g * sympy.cos(t1 + t2)
+    g2 = m * lc * g * sympy.cos(t1 + t2)
+    u1 = -damping * dq1
+    u2_free = -damping * dq2  # u2 = tau + u2_free
+    det = d11 * d22 - d12 * d21
+    drift = [dq1, dq2,
+             (d22 * (u1 - c1 - g1) - d12 * (u2_free - c2 - g2)) / det,
+             (d11 * (u2_free - c2 - g2) - d21 * (u1 - c1 - g1)) / det]
+    input_matrix = [[0], [0], [-d12 / det], [d11 / det]]
+    symbols = {"m": m, "l": ell, "lc": lc, "lc2": lc2, "l2": l2, "I1": i1, "I2": i2, "g": g}
+    return (q1, q2, dq1, dq2), tau, drift, input_matrix, symbols
+
+
+def _make(name: str, velocity_scale: float) -> SymbolicSystem:
+    states, tau, drift, input_matrix, symbols = acrobot_equations()
+    vb = VELOCITY_BOUND * velocity_scale
+    return build_system(
+        name, states=states, inputs=[tau], drift=drift, input_matrix=input_matrix,
+        input_weight=[[1]],
+        parameters={symbols[k]: v for k, v in PARAMETERS.items()},
+        input_low=-TORQUE_LIMIT, input_high=TORQUE_LIMIT,
+        state_low=[-math.pi, -math.pi, -vb, -vb],
+        state_high=[math.pi, math.pi, vb, vb],
+        angle_dims=[0, 1], state_names=["theta1", "theta2", "theta1_dot", "theta2_dot"],
+        input_names=["elbow_torque"],
+        description="sparse_rrt two_link_acrobot (damped, |tau| <= 4), theta1 = 0 hanging"
+                    + ("" if velocity_scale == 1.0 else
+                       f"; velocity bounds x{velocity_scale:g}"),
+        defaults={"start": list(START), "goal": list(GOAL)},
+    )
+
+
+def make_acrobot() -> SymbolicSystem:
+    """sparse_rrt's acrobot with its stated bounds as the box and its swing-up query (goal:
+    the state ball `GOAL_RADIUS`, see the module docstring)."""
+    return _make("sparse_rrt_acrobot", 1.0)
+
+
+def make_acrobot_wide() -> SymbolicSystem:
+    """The same with the velocity bounds widened by 50% (|theta1'|, |theta2'| <= 9)."""
+    return _make("sparse_rrt_acrobot_wide", 1.5)
+
+
+def end_effector(theta1, theta2):
+    """sparse_rrt's task-space point of a state, (x, y) with L = 20 (numpy, broadcasting)."""
+    t1 = np.asarray(theta1) - np.pi / 2
+    t2 = np.asarray(theta2)
+    return LINK_LENGTH_TASK * np.stack([np.cos(t1) + np.cos(t1 + t2),
+                                        np.sin(t1) + np.sin(t1 + t2)], axis=-1)
+
+
+def in_task_goal(states) -> np.ndarray:
+    """sparse_rrt's goal test on states (N, 4): end effector within 2 of the goal's."""
+    states = np.atleast_2d(states)
+    goal = end_effector(GOAL[0], GOAL[1])
+    return np.linalg.norm(end_effector(states[:, 0], states[:, 1]) - goal,
+                          axis=-1) <= TASK_GOAL_RADIUS
+
+
+if __name__ == "__main__":
+    from rrtcolearn.systems.check import check_system
+
+    system = make_acrobot()
+    check_system(system)
+    print(f"{system.name}: check_system passed; run it with\n  rrtcolearn run --system "
+          "examples.sparse_rrt_acrobot:make_acrobot --set plan.time_limit=60 "
+          f"--set plan.goal_tolerance={GOAL_RADIUS} --set plan.wrap_goal=true")
