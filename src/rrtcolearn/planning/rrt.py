@@ -12,6 +12,7 @@ from rrtcolearn.errors import ConfigError
 from rrtcolearn.integrate import rollout
 from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.planning.funnel import GoalFunnel
+from rrtcolearn.planning.nearest import NodeIndex
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.shooting import shoot
 from rrtcolearn.planning.termination import TerminationCondition
@@ -184,6 +185,7 @@ class RRTCoLearn:
         self.model = model
         self.settings = settings or PlannerSettings()
         self._rejected = "no_costate"  # why the last draw gave no edge (OUTCOMES)
+        self._indices: tuple[NodeIndex, ...] = ()  # kept up to date by _add_edge
         sys = problem.system
         if (self.settings.goal_connect or self.settings.goal_funnel) and \
                 sys.params_from_costate is None:
@@ -208,19 +210,19 @@ class RRTCoLearn:
         out[k] = np.round(_truncnorm(rng, prediction[k], sigma, s.dt, s.max_duration), s.decimals)
         return out
 
-    def _extend(self, states: np.ndarray, target: np.ndarray, weight: np.ndarray
-                ) -> np.ndarray:
-        """``target`` moved to within ``extend_distance`` of its nearest node (weighted)."""
-        diff = target - states
+    def _extend(self, states: np.ndarray, target: np.ndarray, weight: np.ndarray,
+                wrapped: NodeIndex) -> np.ndarray:
+        """``target`` moved to within ``extend_distance`` of its nearest node (weighted, angles
+        modulo a turn)."""
+        i = int(wrapped.nearest(target, 1)[0])
+        diff = target - states[i]
         angles = list(self.problem.system.angle_dims)
         if angles:
-            diff[:, angles] = np.mod(diff[:, angles] + np.pi, 2.0 * np.pi) - np.pi
+            diff[angles] = np.mod(diff[angles] + np.pi, 2.0 * np.pi) - np.pi
         wd = diff * weight
-        d2 = np.einsum("ij,ij->i", wd, wd)
-        i = int(np.argmin(d2))
-        dist = float(np.sqrt(d2[i]))
+        dist = float(np.sqrt(wd @ wd))
         factor = min(1.0, self.settings.extend_distance / dist) if dist > 0 else 1.0
-        return states[i] + factor * diff[i]
+        return states[i] + factor * diff
 
     def _edge(self, rng, x0: np.ndarray, prediction: np.ndarray, sigma: float,
               lam: np.ndarray, z0: np.ndarray):
@@ -394,6 +396,8 @@ class RRTCoLearn:
         """Add the node at the end of ``edge`` (as `_edge` returns it) below ``parent``."""
         traj, params, lam, steps, u_abs, _ = edge
         n = self.problem.system.n_states
+        for index in self._indices:
+            index.add(traj[-1, :n])
         return tree.add(traj[-1, :n], parent, lam, params[:-1], steps * self.settings.dt,
                         traj[-1, 2 * n], traj[:, :n], u_abs)
 
@@ -404,6 +408,16 @@ class RRTCoLearn:
         rng = np.random.default_rng(seed)
         n = sys.n_states
         tree = PlannerData(prob.start, sys.n_params)
+        weight = np.ones(n) if s.metric_scale is None else np.asarray(s.metric_scale)
+        # tree nodes in nearest-neighbour structures: candidate parents by plain (weighted)
+        # distance, and by distance with angles modulo a turn (extend, the wrapped goal)
+        angle_low = np.full(n, np.nan)
+        angle_low[list(sys.angle_dims)] = sys.state_low[list(sys.angle_dims)]
+        plain, wrapped = NodeIndex(weight), NodeIndex(weight, angle_low)
+        self._indices = (plain, wrapped)
+        plain.add(prob.start)
+        wrapped.add(prob.start)
+        bounded = s.max_candidates < 2**62
         # learning-query start of every node: its state shifted by whole turns into the box
         shifts = np.empty((256, n))
         shifts[0] = sys.wrap_shift(prob.start[None])[0]
@@ -414,7 +428,6 @@ class RRTCoLearn:
         tried = np.zeros(256, dtype=bool)  # nodes the goal connection has started from
         connection = None  # which connection made the last edge, if one did
         extend = np.isfinite(s.extend_distance)
-        weight = np.ones(n) if s.metric_scale is None else np.asarray(s.metric_scale)
         iterations = 0
         # what became of each iteration (`diagnose`), and when the tree last grew
         outcomes = dict.fromkeys(OUTCOMES, 0)
@@ -457,26 +470,28 @@ class RRTCoLearn:
                     break
             states = tree.states[:m]
             if extend and not to_goal:
-                target = self._extend(states, target, weight)
-            if to_goal and prob.wrap_goal:
-                # each node aims at the goal's image nearest to it (angles modulo a turn)
-                diff = prob.goal_offset(states)
-                target_rows = states - diff
-            else:
-                diff = states - target
-                target_rows = None
-            near = np.flatnonzero(np.einsum("ij,ij->i", diff, diff) <= reach2)
+                target = self._extend(states, target, weight, wrapped)
+            aim_images = to_goal and prob.wrap_goal
+            if bounded:
+                # the nearest (weighted) nodes only, from the index: the iteration's cost does
+                # not grow with the tree
+                near = (wrapped if aim_images else plain).nearest(target, s.max_candidates)
+            else:  # the paper's planner: every node within reach
+                near = np.arange(m)
+            # each node aims at the goal's image nearest to it (angles modulo a turn)
+            aims = states[near] - prob.goal_offset(states[near]) if aim_images else target
+            diff = states[near] - aims
+            within = np.einsum("ij,ij->i", diff, diff) <= reach2
+            near = near[within]
             if near.size == 0:
                 outcomes["out_of_reach"] += 1
                 continue
-            if near.size > s.max_candidates:
-                # the nearest (weighted) nodes only: bounds the neighbour queries per iteration
-                wd = diff[near] * weight
-                keep = np.argpartition(np.einsum("ij,ij->i", wd, wd), s.max_candidates - 1)
-                near = np.sort(near[keep[: s.max_candidates]])
+            order = np.argsort(near)  # candidates in node order, as the paper's planner has them
+            near = near[order]
+            if aim_images:
+                aims = aims[within][order]
             sh = shifts[near]
-            query = np.concatenate([states[near] + sh, (target if target_rows is None else
-                                                         target_rows[near]) + sh], axis=1)
+            query = np.concatenate([states[near] + sh, aims + sh], axis=1)
             rows, cost, neighbours = self.model.query_valid(query)
             if rows.size == 0:
                 outcomes["invalid_query"] += 1
@@ -486,7 +501,7 @@ class RRTCoLearn:
             prediction = self.model.steer(query[rows[best] : rows[best] + 1],
                                           neighbours[best : best + 1])[0]
             x0 = states[parent]
-            aim = target if target_rows is None else target_rows[parent]
+            aim = aims[rows[best]] if aim_images else target
             sigma = s.sigma_goal if to_goal else s.sigma
             edge, best_d2 = None, np.inf
             for _ in range(s.control_samples):

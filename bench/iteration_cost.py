@@ -1,0 +1,82 @@
+"""Planner iteration cost against tree size: thread CPU per iteration over a window of
+iterations starting when the tree first holds 100, 1 000 and 10 000 nodes.
+
+The tree grows towards a goal it cannot reach (tolerance 1e-9) on the paper's pendulum model,
+so every iteration is an ordinary one. Prints one line per configuration: the paper's planner
+(J queried for every node within reach) and the default (the nearest ``plan.max_candidates``
+nodes from the tree's nearest-neighbour index). Usage: python bench/iteration_cost.py
+[--window 300] [--sizes 100,1000,10000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+from rrtcolearn.config import Config
+from rrtcolearn.data.clean import clean_data
+from rrtcolearn.data.generate import generate_data
+from rrtcolearn.pipeline import FittedModel, fit_functions
+from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.rrt import RRTCoLearn
+from rrtcolearn.planning.termination import TerminationCondition
+from rrtcolearn.systems import make
+
+
+class _Probe(TerminationCondition):
+    """Stops after the last window; records thread CPU at each window's ends."""
+
+    def __init__(self, planner: RRTCoLearn, sizes: list[int], window: int):
+        super().__init__(time_limit=None)
+        self.planner, self.sizes, self.window = planner, sizes, window
+        self.marks: dict[int, tuple[int, float]] = {}
+        self.result: dict[int, float] = {}
+
+    def __call__(self, iterations: int) -> bool:
+        nodes = len(self.planner._indices[0]) if self.planner._indices else 1
+        t = time.thread_time()
+        for size in self.sizes:
+            if size not in self.marks and nodes >= size:
+                self.marks[size] = (iterations, t)
+            elif size in self.marks and size not in self.result:
+                it0, t0 = self.marks[size]
+                if iterations - it0 >= self.window:
+                    self.result[size] = (t - t0) / (iterations - it0)
+        return len(self.result) == len(self.sizes)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--window", type=int, default=300)
+    ap.add_argument("--sizes", default="100,1000,10000")
+    args = ap.parse_args(argv)
+    sizes = [int(v) for v in args.sizes.split(",")]
+    system = make("pendulum")
+    cfg = Config()
+    data, _ = generate_data(system, 1, cfg.generate.n_simulations)
+    cleaned, _ = clean_data(data, seed=1)
+    model = FittedModel(system, cfg, fit_functions(system, cleaned, cfg),
+                        float(cleaned.duration.max()), cfg.generate.max_state_distance)
+    problem = PlanningProblem.create(system, [-np.pi, 0.0], [0.0, 0.0], 1e-9)
+    out = {}
+    for label, k in (("paper (all nodes within reach)", None),
+                     (f"default (nearest {cfg.plan.max_candidates})", cfg.plan.max_candidates)):
+        c = cfg.model_copy(update={"plan": cfg.plan.model_copy(update={"max_candidates": k})})
+        planner = RRTCoLearn(problem, model.functions, model.planner_settings(c))
+        probe = _Probe(planner, sizes, args.window)
+        planner.solve(probe, seed=1)
+        ms = {s: round(1e3 * v, 4) for s, v in probe.result.items()}
+        ratio = max(ms.values()) / min(ms.values())
+        print(f"{label}: ms per iteration at " + ", ".join(f"{s} nodes {v}" for s, v in
+                                                            ms.items())
+              + f"; largest/smallest {ratio:.2f} (target <= 2)")
+        out[label] = {"ms_per_iteration": ms, "ratio": round(ratio, 3)}
+    print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()

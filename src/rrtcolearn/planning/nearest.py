@@ -1,0 +1,85 @@
+"""Nearest tree nodes for the planner: a k-d tree over the older nodes plus the newest ones.
+
+OMPL's planners keep their nodes in a `NearestNeighbors` structure so that an iteration's cost
+does not grow with the tree; this is ours. The metric is the weighted Euclidean distance of
+the learners (`System.metric_scale`) in plain state coordinates, the one the planner has
+always ranked its candidates by. scipy's k-d tree cannot take insertions, so the index keeps
+the nodes added since its last build in a small buffer that is searched by brute force, and
+rebuilds when the buffer holds ``rebuild_every`` nodes: the amortised build cost per node is
+O(log n) and a query costs O(log n + rebuild_every).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+class NodeIndex:
+    """k nearest of the added points (n,) under ``|weight * (x - y)|``.
+
+    With ``angle_low`` (n,) (NaN for coordinates that are not angles) angle coordinates are
+    compared modulo a turn: points are stored wrapped into [low, low + 2 pi) and the k-d tree
+    is periodic there. Results are ordered by (distance, index), so they do not depend on how
+    the points are split between the k-d tree and the buffer.
+    """
+
+    def __init__(self, weight: np.ndarray, angle_low: np.ndarray | None = None,
+                 rebuild_every: int = 256):
+        self.weight = np.asarray(weight, dtype=np.float64)
+        n = len(self.weight)
+        low = np.full(n, np.nan) if angle_low is None else np.asarray(angle_low, float)
+        self._angles = np.flatnonzero(np.isfinite(low))
+        self._low = np.where(np.isfinite(low), low, 0.0) * self.weight
+        self._period = np.where(np.isfinite(low), 2.0 * np.pi * self.weight, 0.0)
+        self.rebuild_every = int(rebuild_every)
+        self._points = np.empty((256, len(self.weight)))
+        self._size = 0
+        self._indexed = 0  # points [0, _indexed) are in the k-d tree
+        self._tree: cKDTree | None = None
+
+    def __len__(self) -> int:
+        return self._size
+
+    def add(self, x: np.ndarray) -> None:
+        if self._size == self._points.shape[0]:
+            self._points = np.concatenate([self._points, np.empty_like(self._points)])
+        self._points[self._size] = self._wrapped(np.asarray(x, dtype=np.float64))
+        self._size += 1
+        if self._size - self._indexed >= self.rebuild_every:
+            self._tree = cKDTree(self._points[: self._size].copy(),
+                                 boxsize=self._period if self._angles.size else None)
+            self._indexed = self._size
+
+    def _wrapped(self, x: np.ndarray) -> np.ndarray:
+        """Weighted coordinates, angles shifted by whole turns into [0, period)."""
+        y = x * self.weight - self._low
+        a = self._angles
+        if a.size:
+            y[a] = np.mod(y[a], self._period[a])
+            y[a] = np.where(y[a] >= self._period[a], 0.0, y[a])  # mod can round up to it
+        return y
+
+    def _sqdist(self, points: np.ndarray, q: np.ndarray) -> np.ndarray:
+        diff = points - q
+        a = self._angles
+        if a.size:
+            p = self._period[a]
+            diff[:, a] = np.mod(diff[:, a] + 0.5 * p, p) - 0.5 * p
+        return np.einsum("ij,ij->i", diff, diff)
+
+    def nearest(self, target: np.ndarray, k: int) -> np.ndarray:
+        """Indices of the (at most) ``k`` nearest points, nearest first."""
+        q = self._wrapped(np.asarray(target, dtype=np.float64))
+        parts = []
+        if self._tree is not None:
+            _, i = self._tree.query(q, k=min(k, self._indexed))
+            parts.append(np.atleast_1d(i).astype(np.int64))
+        if self._size > self._indexed:
+            parts.append(np.arange(self._indexed, self._size))
+        idx = np.concatenate(parts)
+        # distances recomputed one way for both parts, so equal points compare equal
+        # wherever they are stored
+        d2 = self._sqdist(self._points[idx], q)
+        order = np.lexsort((idx, d2))[:k]
+        return idx[order]
