@@ -234,3 +234,27 @@ def test_saturated_data_do_not_depend_on_workers():
     lam, x0 = serial.costate, serial.x0
     u = system.optimal_control(x0, lam)
     assert np.all(np.abs(u) <= 0.5) and np.any(np.abs(u) == 0.5)
+
+
+def test_state_constraints_are_separate_from_the_sampling_box(saturated_pendulum):
+    """|omega| <= 1.2 as a constraint: the data (|omega| <= pi) are unchanged, no plan edge
+    leaves the constraint, and a start outside it is refused."""
+    from rrtcolearn.planning.problem import ProblemError
+
+    cfg = saturated_pendulum.config.model_copy(update={"plan": saturated_pendulum.config.plan
+                                                       .model_copy(update={
+                                                           "state_low": [-10.0, -1.2],
+                                                           "state_high": [10.0, 1.2]})})
+    tree_max = []
+    for seed in range(3):
+        p = pipeline.plan(saturated_pendulum, [-np.pi, 0.0], [0.0, 0.0], 0.1, seed=seed,
+                          config=cfg, time_limit=None, max_iterations=3000)
+        for traj in p.tree.trajectories:
+            tree_max.append(np.abs(traj[:, 1]).max())
+    assert max(tree_max) <= 1.2
+    free = pipeline.plan(saturated_pendulum, [-np.pi, 0.0], [0.0, 0.0], 0.1, seed=0,
+                         time_limit=None, max_iterations=3000)
+    assert max(np.abs(t[:, 1]).max() for t in free.tree.trajectories) > 1.2
+    with pytest.raises(ProblemError, match="outside the state box"):
+        pipeline.plan(saturated_pendulum, [-np.pi, 1.5], [0.0, 0.0], 0.1, config=cfg,
+                      max_iterations=10)

@@ -339,7 +339,8 @@ def plan(
         cfg = add_obstacles(cfg, list(obstacle or []))
         start_x, goal_x = pipeline.query_states(cfg, system)
         PlanningProblem.create(system, start_x, goal_x, cfg.plan.goal_tolerance,
-                               obstacles=[o.model_dump() for o in cfg.plan.obstacles])
+                               obstacles=[o.model_dump() for o in cfg.plan.obstacles],
+                               state_low=cfg.plan.state_low, state_high=cfg.plan.state_high)
         out_path = out if out is not None else run_dir / "plan.json"
         if out_path.is_dir():
             raise ConfigError(f"--out {out_path} is a directory; give a file name like "

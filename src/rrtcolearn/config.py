@@ -176,6 +176,12 @@ class PlanConfig(_Section):
     goal_tolerance: float = Field(0.1, gt=0)
     wrap_goal: bool = Field(False, description="compare angles modulo a turn in the goal test "
                             "(the paper compares plain coordinates)")
+    state_low: list[float] | None = Field(
+        None, description="state constraints for the planner: an edge leaving them is "
+        "invalid (one value per state, entries of angle coordinates ignored; none: the "
+        "sampling box); they may differ from generate.state_low, where the data's start "
+        "states are drawn")
+    state_high: list[float] | None = None
     goal_bias: float = Field(0.2, ge=0, le=1)
     sigma: float = Field(math.pi / 4, gt=0)
     sigma_goal: float = Field(math.pi / 2, gt=0)

@@ -451,7 +451,9 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
         obstacles = [o.model_dump() for o in cfg.plan.obstacles]
     problem = PlanningProblem.create(model.system, start, goal, goal_tolerance, u_max=u_max,
                                      obstacles=obstacles, is_valid=is_valid,
-                                     wrap_goal=cfg.plan.wrap_goal)
+                                     wrap_goal=cfg.plan.wrap_goal,
+                                     state_low=cfg.plan.state_low,
+                                     state_high=cfg.plan.state_high)
     planner = RRTCoLearn(problem, model.functions, model.planner_settings(config))
     result = planner.solve(TerminationCondition(time_limit, max_iterations), seed)
     result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None

@@ -53,7 +53,8 @@ class GoalFunnel:
     def build(cls, system: System, goal: np.ndarray, offset: Callable[[np.ndarray], np.ndarray],
               rng: np.random.Generator, *, n_simulations: int, time_weight: float, dt: float,
               max_duration: float, max_cost: float, scale: np.ndarray, tolerance: float,
-              min_duration: float = 0.0) -> GoalFunnel:
+              min_duration: float = 0.0,
+              box: tuple[np.ndarray, np.ndarray] | None = None) -> GoalFunnel:
         """``n_simulations`` extremals from ``goal`` with costates drawn as the data's
         (uniform steering parameters, H* = 0), integrated backwards for at most
         ``max_duration`` or until their |cost| exceeds ``max_cost``. Only states inside the
@@ -62,7 +63,8 @@ class GoalFunnel:
         there has arrived. ``offset`` is the goal test's state-minus-goal (angles wrapped
         when it wraps them). States closer than ``min_duration`` to the goal are dropped:
         where little time is left, the boundary value problem from near them can be too
-        ill-conditioned to solve (the acrobot's, README)."""
+        ill-conditioned to solve (the acrobot's, README). ``box`` is the state constraints
+        (low, high), the sampling box by default."""
         n = system.n_states
         goal = np.asarray(goal, dtype=np.float64)
         params = rng.uniform(system.param_low, system.param_high, (n_simulations, system.n_params))
@@ -71,7 +73,8 @@ class GoalFunnel:
         lam = lam[valid]
         max_steps = max(1, int(max_duration / dt))
         bounded = system.bounded_dims
-        lo, hi = system.state_low[bounded], system.state_high[bounded]
+        low, high = (system.state_low, system.state_high) if box is None else box
+        lo, hi = low[bounded], high[bounded]
         # stop each extremal once it is certainly outside the box: beyond the ball around the
         # goal, in the bounded coordinates scaled by the box's widths, that holds the box
         ball = np.zeros(n)

@@ -21,7 +21,8 @@ class ProblemError(RRTCoLearnError, ValueError):
     """A planning query that cannot be planned (bad start, goal or tolerance)."""
 
 
-def check_state(system: System, value, what: str) -> np.ndarray:
+def check_state(system: System, value, what: str, low: np.ndarray | None = None,
+                high: np.ndarray | None = None) -> np.ndarray:
     """Validate a state: the right length, finite, inside the system's sampling box."""
     try:
         x = np.asarray(value, dtype=np.float64)
@@ -32,13 +33,39 @@ def check_state(system: System, value, what: str) -> np.ndarray:
                            f"({', '.join(system.state_names)}), got {x.size}")
     if not np.all(np.isfinite(x)):
         raise ProblemError(f"{what} must be finite, got {x.tolist()}")
-    outside = (x < system.state_low) | (x > system.state_high)
+    low = system.state_low if low is None else low
+    high = system.state_high if high is None else high
+    outside = (x < low) | (x > high)
     if outside.any():
         j = int(np.flatnonzero(outside)[0])
         raise ProblemError(
             f"{what} {system.state_names[j]}={x[j]:g} is outside the state box "
-            f"[{system.state_low[j]:g}, {system.state_high[j]:g}]")
+            f"[{low[j]:g}, {high[j]:g}]")
     return x
+
+
+def state_bounds(system: System, low=None, high=None) -> tuple[np.ndarray, np.ndarray]:
+    """The planner's state constraints: ``low``/``high`` (n values, None entries or None for
+    the system's sampling box) over the box; ProblemError if malformed. Angle coordinates keep
+    the box (the dynamics are periodic in them)."""
+    out = []
+    for value, box, what in ((low, system.state_low, "state_low"),
+                             (high, system.state_high, "state_high")):
+        b = np.array(box, dtype=np.float64)
+        if value is not None:
+            if len(value) != system.n_states:
+                raise ProblemError(f"{what} needs {system.n_states} values (None keeps the "
+                                   f"sampling box), got {len(value)}")
+            for j, v in enumerate(value):
+                if v is not None and j not in system.angle_dims:
+                    if not np.isfinite(v):
+                        raise ProblemError(f"{what} must be finite numbers or None")
+                    b[j] = float(v)
+        out.append(b)
+    if np.any(out[0] >= out[1]):
+        raise ProblemError(f"state constraints need state_low < state_high, got "
+                           f"{out[0].tolist()} and {out[1].tolist()}")
+    return out[0], out[1]
 
 
 @dataclass(frozen=True)
@@ -50,6 +77,9 @@ class PlanningProblem:
     way round the tree got there).
     ``u_max`` bounds |u| along every edge (None: unbounded, the paper's setting);
     ``validity`` is the state validity checker (obstacles), checked at every RK4 step.
+    ``state_low``/``state_high`` are the state constraints: an edge that leaves them in a
+    non-angle coordinate is invalid. They default to the system's sampling box and may differ
+    from it (`state_bounds`): a user states "|omega| <= 7" without changing the data.
     """
 
     system: System
@@ -59,16 +89,25 @@ class PlanningProblem:
     u_max: float | None = None
     validity: ObstacleChecker = field(default_factory=ObstacleChecker)
     wrap_goal: bool = False
+    state_low: np.ndarray | None = None
+    state_high: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.state_low is None or self.state_high is None:
+            low, high = state_bounds(self.system)
+            object.__setattr__(self, "state_low", low)
+            object.__setattr__(self, "state_high", high)
 
     @classmethod
     def create(cls, system: System, start, goal, goal_tolerance: float = 0.1, *,
                u_max: float | None = None,
                obstacles: Sequence[Obstacle | dict] = (),
                is_valid: StateValidityChecker | None = None,
-               wrap_goal: bool = False) -> PlanningProblem:
+               wrap_goal: bool = False, state_low=None, state_high=None) -> PlanningProblem:
         """Validated problem; raises ProblemError with a one-line reason."""
-        start = check_state(system, start, "start")
-        goal = check_state(system, goal, "goal")
+        low, high = state_bounds(system, state_low, state_high)
+        start = check_state(system, start, "start", low, high)
+        goal = check_state(system, goal, "goal", low, high)
         try:
             tol = float(goal_tolerance)
         except (TypeError, ValueError):
@@ -92,7 +131,7 @@ class PlanningProblem:
                 if not validity(x[None])[0]:
                     raise ProblemError(f"the {what} {x.tolist()} lies inside an obstacle")
         return cls(system, start, goal, tol, None if u_max is None else float(u_max),
-                   validity, bool(wrap_goal))
+                   validity, bool(wrap_goal), low, high)
 
     def within_bounds(self, x: np.ndarray) -> np.ndarray:
         """(N,) True where states (N, n) lie inside the state box in its non-angle coordinates.
@@ -101,8 +140,8 @@ class PlanningProblem:
         """
         x = np.atleast_2d(x)
         dims = self.system.bounded_dims
-        return np.all((x[:, dims] >= self.system.state_low[dims])
-                      & (x[:, dims] <= self.system.state_high[dims]), axis=1)
+        return np.all((x[:, dims] >= self.state_low[dims])
+                      & (x[:, dims] <= self.state_high[dims]), axis=1)
 
     @property
     def goal_angles(self) -> tuple[int, ...]:

@@ -101,8 +101,9 @@ _ADVICE = {
                   "plan.sigma or generate more data near the start",
     "input_limit": "edges break the input limit: plan with system.limit_mode = 'saturate' "
                    "(the default; the optimal control then rides the limit)",
-    "state_box": "edges leave the state box in a non-angle coordinate: widen the box "
-                 "(generate.state_low/state_high) so that it holds the motion",
+    "state_box": "edges leave the state constraints in a non-angle coordinate: widen them "
+                 "(plan.state_low/state_high, default the sampling box generate.state_low/"
+                 "state_high) so that they hold the motion",
     "obstacle": "edges run into obstacles at once: the start is boxed in, or the obstacles "
                 "are thicker than the data's segments are long",
     "nonfinite": "integration overflowed: the dynamics blow up in the box, lower generate.dt",
@@ -268,8 +269,8 @@ class RRTCoLearn:
         bounded = sys.bounded_dims
         if s.enforce_bounds and bounded.size:
             pb = path[:, bounded]
-            if (pb.min(axis=0) < sys.state_low[bounded]).any() or \
-                    (pb.max(axis=0) > sys.state_high[bounded]).any():
+            if (pb.min(axis=0) < prob.state_low[bounded]).any() or \
+                    (pb.max(axis=0) > prob.state_high[bounded]).any():
                 self._rejected = "state_box"
                 return None
         end = steps
@@ -442,7 +443,8 @@ class RRTCoLearn:
                 sys, prob.goal, prob.goal_offset, rng, n_simulations=s.goal_funnel,
                 time_weight=s.time_weight, dt=s.dt, max_duration=s.funnel_duration,
                 max_cost=s.funnel_max_cost, scale=weight,
-                tolerance=prob.goal_tolerance, min_duration=s.funnel_min_duration)
+                tolerance=prob.goal_tolerance, min_duration=s.funnel_min_duration,
+                box=(prob.state_low, prob.state_high))
             search = _FunnelSearch(funnel, np.full((256, _FUNNEL_POINTS), np.inf),
                                    np.zeros((256, _FUNNEL_POINTS), int), np.zeros(256, bool))
         if prob.goal_distance(prob.start)[0] <= prob.goal_tolerance:
