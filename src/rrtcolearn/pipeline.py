@@ -176,7 +176,7 @@ def generate(config: Config, run_dir: str | Path,
     g = config.generate
     tasks = generation_tasks(
         system, seed_stream(config.seed, "generate"), g.n_simulations,
-        time_weight=config.system.time_weight, dt=g.dt, max_cost=g.max_cost,
+        time_weight=config.system.time_weight, dt=g.dt, max_cost=config.max_cost,
         max_state_distance=g.max_state_distance, chunk_size=g.chunk_size,
         u_max=config.system.truncation_limit, max_duration=g.max_duration,
         goal_simulations=g.goal_simulations, goal=_data_goal(config, system))
@@ -265,7 +265,7 @@ class FittedModel:
             else p.connect_reach,
             goal_funnel=p.goal_funnel, funnel_radius=p.funnel_radius,
             funnel_duration=p.funnel_duration, funnel_min_duration=p.funnel_min_duration,
-            funnel_max_cost=self.config.generate.max_cost,
+            funnel_max_cost=self.config.max_cost,
             stall_iterations=p.stall_iterations)
 
 
