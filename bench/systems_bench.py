@@ -111,7 +111,7 @@ def bench_system(name: str, queries: int, time_limit: float | None,
                kept_points=len(cleaned), offline_cpu_s=round(gen_cpu + clean_cpu + fit_cpu, 2))
     system = model.system
     held, _ = generate_data(system, 10_000 + cfg.seed, 2000, time_weight=w, dt=dt,
-                            max_cost=cfg.generate.max_cost,
+                            max_cost=cfg.max_cost,
                             max_state_distance=cfg.generate.max_state_distance,
                             max_duration=cfg.generate.max_duration)
     err = held_out_errors(system, model.functions, held, n_queries=1000, time_weight=w, dt=dt)
