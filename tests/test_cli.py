@@ -228,3 +228,17 @@ def test_run_works_for_every_shipped_system(name, tmp_path):
     if name == "cartpole":  # ... which applies where the user is silent
         assert 'name = "cartpole-swingup"' in cfg and "control_samples = 16" in cfg
         assert 'learner = "mlp"' in cfg and (out / "networks.npz").is_file()
+
+
+def test_run_name_follows_the_system():
+    """Without --out a user system's run does not land in the pendulum's directory."""
+    from rrtcolearn.cli import _run_name
+    from rrtcolearn.config import load_config
+
+    assert _run_name(load_config()) == "pendulum-swingup"
+    user = load_config(overrides=['system.name="examples.damped_pendulum:make_damped_pendulum"'])
+    assert _run_name(user) == "examples.damped_pendulum-make_damped_pendulum"
+    named = load_config(overrides=['name="mine"', 'system.name="double_integrator"'])
+    assert _run_name(named) == "mine"
+    # a registered system's recommended configuration names its runs
+    assert _run_name(load_config(overrides=['system.name="cartpole"'])) == "cartpole-swingup"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import signal
 import sys
 import time
@@ -155,8 +156,16 @@ def _config(config: Path | None, seed: int | None, overrides: list[str] | None,
     return cfg
 
 
+def _run_name(cfg: Config) -> str:
+    """The run's name: the configured one, or for another system than the pendulum under the
+    default name, the system's (so a user system's run does not land in the pendulum's)."""
+    if cfg.name == Config().name and cfg.system.name != Config().system.name:
+        return re.sub(r"[^A-Za-z0-9._-]", "-", cfg.system.name).lstrip("-._") or cfg.name
+    return cfg.name
+
+
 def _run_dir(out: Path | None, cfg: Config) -> Path:
-    run_dir = out if out is not None else Path("runs") / cfg.name
+    run_dir = out if out is not None else Path("runs") / _run_name(cfg)
     if run_dir.exists() and not run_dir.is_dir():
         raise ConfigError(f"--out {run_dir} exists and is not a directory")
     return run_dir
@@ -314,7 +323,9 @@ def plan(
 ) -> None:
     """Plan one query with a fitted model; writes the plan JSON and a PNG of the tree."""
     def body():
-        run_dir = model if model is not None else Path("runs") / Config().name
+        run_dir = model if model is not None else Path("runs") / _run_name(
+            Config() if system_name is None else Config().model_copy(update={
+                "system": Config().system.model_copy(update={"name": system_name})}))
         overrides = list(set_ or [])
         for key, value in (("start", _parse_state(start, "--start")),
                            ("goal", _parse_state(goal, "--goal")),
