@@ -37,15 +37,17 @@ def pendulum_rhs_numpy(z: np.ndarray, w: float) -> np.ndarray:
     return np.array([om, np.sin(th) - lom, -lom * np.cos(th), -lth, w + 0.5 * lom**2])
 
 
-def rk4_numpy(z0: np.ndarray, w: float, dt: float, steps: int) -> np.ndarray:
-    """A plain RK4 integrator, independent of the package's compiled one."""
+def rk4_numpy(z0: np.ndarray, w: float, dt: float, steps: int,
+              rhs=pendulum_rhs_numpy) -> np.ndarray:
+    """A plain RK4 integrator of ``rhs(z, w)`` (the pendulum's by default), independent of the
+    package's compiled one; all (steps+1) states."""
     z = np.array(z0, dtype=float)
     out = [z.copy()]
     for _ in range(steps):
-        k1 = pendulum_rhs_numpy(z, w)
-        k2 = pendulum_rhs_numpy(z + 0.5 * dt * k1, w)
-        k3 = pendulum_rhs_numpy(z + 0.5 * dt * k2, w)
-        k4 = pendulum_rhs_numpy(z + dt * k3, w)
+        k1 = rhs(z, w)
+        k2 = rhs(z + 0.5 * dt * k1, w)
+        k3 = rhs(z + 0.5 * dt * k2, w)
+        k4 = rhs(z + dt * k3, w)
         z = z + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         out.append(z.copy())
     return np.array(out)

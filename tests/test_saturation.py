@@ -14,6 +14,7 @@ import math
 import numpy as np
 import pytest
 import sympy
+from tests.conftest import rk4_numpy
 
 from rrtcolearn.systems import make
 from rrtcolearn.systems.check import SystemCheckError, check_system
@@ -90,16 +91,7 @@ def two_input_rhs(z, w):
 
 
 def rk4(rhs, z0, w, dt, steps):
-    z = np.array(z0, dtype=float)
-    out = [z.copy()]
-    for _ in range(steps):
-        k1 = rhs(z, w)
-        k2 = rhs(z + 0.5 * dt * k1, w)
-        k3 = rhs(z + 0.5 * dt * k2, w)
-        k4 = rhs(z + dt * k3, w)
-        z = z + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        out.append(z.copy())
-    return np.array(out)
+    return rk4_numpy(z0, w, dt, steps, rhs)
 
 
 def samples(system, n, seed, w=W):
