@@ -199,7 +199,7 @@ class PlanConfig(_Section):
         1, ge=1, le=1000, description="steering draws per iteration, the one ending nearest "
         "the target kept; 1: the paper's planner")
     max_candidates: int | None = Field(
-        16, ge=1, description="query J for only this many nodes nearest the target "
+        32, ge=1, description="query J for only this many nodes nearest the target "
         "(weighted distance, from the tree's nearest-neighbour index), so an iteration's "
         "cost does not grow with the tree; none: every node within reach, the paper's "
         "planner")
