@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench bench-systems bench-iterations lint clean-venv
+.PHONY: run test bench bench-systems bench-iterations bench-limits lint clean-venv
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -28,6 +28,10 @@ bench-systems: $(STAMP)
 # planner iteration cost at 100, 1 000 and 10 000 tree nodes (about a minute)
 bench-iterations: $(STAMP)
 	$(BIN)/python bench/iteration_cost.py
+
+# the input-limit table with its comparison row (w = 10 at the paper's cost bound): about 11 minutes
+bench-limits: $(STAMP)
+	$(BIN)/python bench/limits_bench.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench
