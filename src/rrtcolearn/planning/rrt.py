@@ -93,14 +93,11 @@ _ADVICE = {
                     "generate.max_state_distance or set plan.extend_distance",
     "invalid_query": "the validity model V rejects the queries from the tree (the data do "
                      "not cover these states): check that the start lies in the sampling box, "
-                     "generate more simulations or raise learn.validity_threshold (with "
-                     "limit_mode 'truncate', extremals that break the limit at once leave no "
-                     "data: use 'saturate')",
+                     "generate more simulations or raise learn.validity_threshold",
     "no_costate": "the steering parameters drawn around U's prediction give no costate on "
                   "H* = 0 (with tight input limits many directions have none): raise "
                   "plan.sigma or generate more data near the start",
-    "input_limit": "edges break the input limit: plan with system.limit_mode = 'saturate' "
-                   "(the default; the optimal control then rides the limit)",
+    "input_limit": "edges break the input limit",
     "state_box": "edges leave the state constraints in a non-angle coordinate: widen them "
                  "(plan.state_low/state_high, default the sampling box generate.state_low/"
                  "state_high) so that they hold the motion",
@@ -125,12 +122,15 @@ def diagnose(outcomes: dict, stalled: bool, nodes: int, truncating: bool) -> str
             "node for plan.stall_iterations iterations)" if stalled
             else f"limit reached with {nodes} node{'s' if nodes != 1 else ''}")
     advice = _ADVICE[worst]
-    if worst == "input_limit" and not truncating:
-        advice = "edges were cut at once by input limits"
-    if worst == "invalid_query" and not truncating:
-        advice = advice.split(" (with limit_mode")[0]
+    if truncating and worst in ("invalid_query", "input_limit"):
+        advice += _TRUNCATION_ADVICE
     return f"{head}; {share:.0%} of {total} iterations: {worst.replace('_', ' ')} — {advice}"
 
+
+# where limits are met by truncating unconstrained extremals, that is the likely cause
+_TRUNCATION_ADVICE = (" (with limit_mode 'truncate', extremals that break the limit at once "
+                      "leave no data: use 'saturate', where the optimal control rides the "
+                      "limit)")
 
 _FUNNEL_POINTS = 3  # funnel states tried per node (each on its own extremal, nearest first)
 _FUNNEL_STRETCH = 1.5  # a funnel connection may last this times the funnel's duration
@@ -266,13 +266,9 @@ class RRTCoLearn:
             self._rejected = "nonfinite"
             return None
         path = traj[1:, :n]
-        bounded = sys.bounded_dims
-        if s.enforce_bounds and bounded.size:
-            pb = path[:, bounded]
-            if (pb.min(axis=0) < prob.state_low[bounded]).any() or \
-                    (pb.max(axis=0) > prob.state_high[bounded]).any():
-                self._rejected = "state_box"
-                return None
+        if s.enforce_bounds and not prob.within_bounds(path).all():
+            self._rejected = "state_box"
+            return None
         end = steps
         if prob.validity:
             # cut the edge at its last valid state, as OMPL's propagateWhileValid does
@@ -414,10 +410,11 @@ class RRTCoLearn:
         # distance, and by distance with angles modulo a turn (extend, the wrapped goal)
         angle_low = np.full(n, np.nan)
         angle_low[list(sys.angle_dims)] = sys.state_low[list(sys.angle_dims)]
-        plain, wrapped = NodeIndex(weight), NodeIndex(weight, angle_low)
-        self._indices = (plain, wrapped)
-        plain.add(prob.start)
-        wrapped.add(prob.start)
+        plain = NodeIndex(weight)
+        wrapped = NodeIndex(weight, angle_low) if sys.angle_dims else plain
+        self._indices = (plain, wrapped) if wrapped is not plain else (plain,)
+        for index in self._indices:
+            index.add(prob.start)
         bounded = s.max_candidates < 2**62
         # learning-query start of every node: its state shifted by whole turns into the box
         shifts = np.empty((256, n))
@@ -545,13 +542,13 @@ class RRTCoLearn:
             dist = prob.goal_distance(tree.states[: tree.n_nodes])
             end = int(np.argmin(dist))
             status = "approximate" if end != 0 else "timeout"
+        input_low, input_high = sys.input_limits() if sys.input_limited else (None, None)
         return Plan(
             system=sys.name, start=prob.start, goal=prob.goal,
             goal_tolerance=prob.goal_tolerance, time_weight=s.time_weight, dt=s.dt,
             status=status, planning_time_s=wall, planning_cpu_s=cpu, iterations=iterations,
             tree=tree, path_nodes=tree.path_to(end), u_max=prob.u_max,
-            input_low=sys.input_limits()[0] if sys.input_limited else None,
-            input_high=sys.input_limits()[1] if sys.input_limited else None,
+            input_low=input_low, input_high=input_high,
             obstacles=[o.to_dict() for o in prob.validity.obstacles],
             goal_angles=prob.goal_angles,
             # which edge reached the goal: the learned steering's, or a connection's
