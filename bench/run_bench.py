@@ -25,7 +25,7 @@ from rrtcolearn.config import Config
 from rrtcolearn.data.clean import clean_data
 from rrtcolearn.data.generate import generate_data
 from rrtcolearn.evaluate import held_out_errors
-from rrtcolearn.pipeline import FittedModel, fit_functions, plan
+from rrtcolearn.pipeline import FittedModel, fit_functions, plan, resolve
 from rrtcolearn.systems import make
 
 REPEATS = 3
@@ -66,7 +66,7 @@ def plan_stats(models, prefix: str, n: int = QUERIES, **kwargs) -> dict:
 
 def offline(system, cfg: Config, seed: int):
     t0 = time.process_time()
-    data, _ = generate_data(system, seed, cfg.generate.n_simulations)
+    data, _ = generate_data(system, seed, cfg.generate.n_simulations, max_cost=cfg.max_cost)
     t1 = time.process_time()
     cleaned, _ = clean_data(data, d=cfg.clean.d, k_max=cfg.clean.k_max, seed=seed)
     t2 = time.process_time()
@@ -98,7 +98,7 @@ def main() -> None:
              str(QUERIES), "--rows", ",".join(group)], stdout=subprocess.PIPE, text=True)
             for group in limits_bench.MAKE_BENCH_GROUPS]
     system = make("pendulum")
-    cfg = Config()
+    cfg = resolve(Config(), system)  # the library's defaults, derived for the pendulum
     small, _ = generate_data(system, 0, 500)  # warm-up: load compiled kernels
     clean_data(small)
     times = []
@@ -116,7 +116,7 @@ def main() -> None:
     # median moves by several ms from one epoch to the next
     main_stats = plan_stats(models, "")
     obstacle_stats = plan_stats(model, "obstacle_", obstacles=[BLOCKING_BOX])
-    held, _ = generate_data(system, 123_456, 2000)
+    held, _ = generate_data(system, 123_456, 2000, max_cost=cfg.max_cost)
     err = held_out_errors(system, functions, held, n_queries=1000)
 
     result = {

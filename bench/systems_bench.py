@@ -100,6 +100,8 @@ def bench_system(name: str, queries: int, time_limit: float | None,
         t0 = time.process_time()
         model = pipeline.fit(cfg, run_dir)
         fit_cpu = time.process_time() - t0
+        cfg = model.config  # with every derived setting (rrtcolearn.derive)
+        row["derived"] = dict(sorted(cfg.derived.items()))
         if mlp:
             t0 = time.process_time()
             net_cfg = cfg.model_copy(update={"learn": cfg.learn.model_copy(
@@ -154,10 +156,11 @@ def bench_system(name: str, queries: int, time_limit: float | None,
                    [p.final_goal_distance for p in plans if not p.solved])), 3)
                if not all(p.solved for p in plans) else None)
     solved = [p for p in plans if p.solved]
-    if cfg.plan.goal_connect or cfg.plan.goal_funnel:
-        # share of the solved plans whose last edge came from a connection (shooting, funnel)
-        row["goal_connected_share"] = round(float(np.mean(
-            [p.extra["goal_connected"] for p in solved])), 3) if solved else None
+    # share of the solved plans whose last edge came from a connection (shooting, funnel)
+    row["goal_connected_share"] = round(float(np.mean(
+        [bool(p.extra.get("goal_connected")) for p in solved])), 3) if solved else None
+    row["connections"] = {k: sum(p.extra.get("connection") == k for p in solved)
+                          for k in ("shooting", "funnel")}
     row["plan_cost_median"] = round(float(np.median([p.path_cost for p in solved])), 3) \
         if solved else None
     row["plan_duration_median"] = round(float(np.median([p.path_duration for p in solved])), 2) \

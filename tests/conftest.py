@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rrtcolearn.config import Config
+from rrtcolearn.config import paper_config
 from rrtcolearn.data.clean import clean_data
 from rrtcolearn.data.generate import generate_data
 from rrtcolearn.pipeline import FittedModel, fit_functions
@@ -24,7 +24,7 @@ def small_dataset(pendulum):
 @pytest.fixture(scope="session")
 def paper_model(pendulum) -> FittedModel:
     """The paper's defaults: 40000 simulations, cleaned with d = 0.05, k-NN m = 3."""
-    cfg = Config()
+    cfg = paper_config()
     data, _ = generate_data(pendulum, 1, cfg.generate.n_simulations)
     cleaned, _ = clean_data(data, seed=1)
     return FittedModel(pendulum, cfg, fit_functions(pendulum, cleaned, cfg),

@@ -56,7 +56,8 @@ def check_config_invariants(cfg: Config) -> None:
         for value in section.model_dump().values():
             if isinstance(value, float):
                 assert math.isfinite(value)
-    assert cfg.system.time_weight > 0 and cfg.generate.n_simulations >= 1
+    assert cfg.system.time_weight > 0
+    assert cfg.generate.n_simulations is None or cfg.generate.n_simulations >= 1
     assert cfg.clean.d > 0 and cfg.plan.goal_tolerance > 0
 
 

@@ -40,10 +40,12 @@ def di_model(tmp_path_factory):
 
 
 @pytest.mark.parametrize("options", [
-    [],  # the paper's planner
+    [],  # derived settings, goal connections switched on by the planner when it stalls
+    ["plan.goal_connect=false", "plan.goal_funnel=0"],  # no goal connection
     ["plan.control_samples=8", "plan.extend_distance=0.5", "plan.max_candidates=4"],
-    ["plan.goal_connect=true"],  # the last edge by shooting
-    ["plan.goal_funnel=500", "plan.goal_bias=0.5"],  # ... from along a funnel extremal
+    ["plan.goal_connect=true", "plan.goal_funnel=0"],  # the last edge by shooting
+    # ... from along a funnel extremal
+    ["plan.goal_funnel=500", "plan.goal_bias=0.5", "plan.goal_connect=false"],
 ])
 def test_double_integrator_plans_resimulate(di_model, options):
     cfg = load_config(overrides=['system.name="double_integrator"', *options])
@@ -62,8 +64,10 @@ def test_double_integrator_plans_resimulate(di_model, options):
         total += e["cost"]
     assert d["path_cost"] == pytest.approx(total)
     assert np.linalg.norm(np.array(d["path"][-1]["to"]) - [1.0, 0.0]) <= 0.1
-    connects = "plan.goal_connect=true" in options or "plan.goal_funnel=500" in options
-    assert ("goal_connected" in d) == connects
+    if "plan.goal_funnel=0" in options and "plan.goal_connect=false" in options:
+        assert "goal_connected" not in d
+    if "plan.goal_connect=true" in options:
+        assert "goal_connected" in d
     if "plan.goal_funnel=500" in options:
         assert d["connection"] == "funnel" and d["funnel_states"] > 0
 
@@ -97,9 +101,16 @@ def test_queries_near_an_angle_seam_find_neighbours_across_it():
 def test_recommended_configuration_sits_under_the_users():
     assert load_config() == Config()  # the pendulum's are the package defaults
     assert recommended_config("pendulum") == {}
+    # the registry states the standard query only; every learner and planner setting is
+    # left to the library (derived)
+    for name in ("cartpole", "acrobot", "double_integrator", "quadrotor"):
+        assert set(recommended_config(name)) <= {"name", "plan"}
+        assert set(recommended_config(name).get("plan", {})) <= {
+            "goal_tolerance", "wrap_goal", "time_limit", "start", "goal"}
     cfg = load_config(overrides=['system.name="cartpole"'])
-    assert cfg.name == "cartpole-swingup" and cfg.plan.control_samples == 16
-    cfg = load_config(overrides=['system.name="cartpole"', "plan.control_samples=2",
+    assert cfg.name == "cartpole-swingup" and cfg.plan.goal_tolerance == 0.3
+    assert cfg.plan.control_samples is None and cfg.learn.validity_threshold is None
+    cfg = load_config(overrides=['system.name="cartpole"', "plan.goal_tolerance=0.2",
                                  'name="mine"'])
-    assert cfg.name == "mine" and cfg.plan.control_samples == 2
-    assert cfg.plan.sigma == recommended_config("cartpole")["plan"]["sigma"]
+    assert cfg.name == "mine" and cfg.plan.goal_tolerance == 0.2
+    assert cfg.plan.wrap_goal == recommended_config("cartpole")["plan"]["wrap_goal"]

@@ -178,6 +178,8 @@ def _progress() -> Progress:
 
 
 def _do_generate(cfg: Config, run_dir: Path, settings=None) -> dict:
+    # the settings left to the library first (a pilot of simulations for the cost bound)
+    cfg, derive_cpu = pipeline.timed(pipeline.resolve, cfg)
     with _progress() as bar:
         task = bar.add_task("generate (Alg. 2)", total=cfg.generate.n_simulations)
         (_, stats), cpu = pipeline.timed(pipeline.generate, cfg, run_dir,
@@ -188,7 +190,17 @@ def _do_generate(cfg: Config, run_dir: Path, settings=None) -> dict:
     return {"simulations": stats.simulations, "invalid_costates": stats.invalid_costates,
             "raw_points": stats.points, "nonfinite_simulations": stats.nonfinite_simulations,
             "resumed_chunks": stats.resumed_chunks,
-            "generate_cpu_s": round(cpu, 3)}
+            "generate_cpu_s": round(cpu + derive_cpu, 3)}
+
+
+def _print_derived(cfg: Config) -> None:
+    """What the library derived for this run, and why (also in config.toml)."""
+    if cfg.derived:
+        table = Table(title="derived settings (set any of them to override)",
+                      show_header=False)
+        for key, line in sorted(cfg.derived.items()):
+            table.add_row(key, line)
+        out_console.print(table)
 
 
 def _do_clean(cfg: Config, run_dir: Path) -> dict:
@@ -290,7 +302,8 @@ def fit(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
     def body():
         cfg = _config(config, seed, set_, out, system=system)
         run_dir = _run_dir(out, cfg)
-        _, figures = _do_fit(cfg, run_dir)
+        fitted, figures = _do_fit(cfg, run_dir)
+        _print_derived(fitted.config)
         _print_summary(f"fit -> {run_dir}", figures)
     _guard(body)
 
@@ -351,7 +364,8 @@ def plan(
         start_x, goal_x = pipeline.query_states(cfg, system)
         PlanningProblem.create(system, start_x, goal_x, cfg.plan.goal_tolerance,
                                obstacles=[o.model_dump() for o in cfg.plan.obstacles],
-                               state_low=cfg.plan.state_low, state_high=cfg.plan.state_high)
+                               state_low=cfg.plan.state_low, state_high=cfg.plan.state_high,
+                               goal_weights=cfg.plan.goal_weights)
         out_path = out if out is not None else run_dir / "plan.json"
         if out_path.is_dir():
             raise ConfigError(f"--out {out_path} is a directory; give a file name like "
@@ -387,13 +401,16 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
                                          + figures["fit_cpu_s"], 3)
         start, goal = pipeline.query_states(cfg, fitted.system)
         p = pipeline.plan(fitted, start, goal, cfg.plan.goal_tolerance,
-                          cfg.seed, config=cfg, time_limit=cfg.plan.time_limit,
+                          cfg.seed, config=fitted.config, time_limit=cfg.plan.time_limit,
                           max_iterations=cfg.plan.max_iterations)
         _write_plan(p, run_dir / "plan.json", fitted.system.state_names)
         figures |= _plan_summary(p)
         figures["wall_s"] = round(time.perf_counter() - t0, 2)
+        figures["derived"] = dict(sorted(fitted.config.derived.items()))
         pipeline.write_json(run_dir / "summary.json", figures)
-        _print_summary(f"run -> {run_dir}", figures)
+        _print_derived(fitted.config)
+        _print_summary(f"run -> {run_dir}", {k: v for k, v in figures.items()
+                                              if k != "derived"})
     _guard(body)
 
 

@@ -94,12 +94,14 @@ class SystemConfig(_Section):
 
 
 class GenerateConfig(_Section):
-    n_simulations: int = Field(40000, ge=1, description="simulations per epoch (Alg. 2)")
+    n_simulations: int | None = Field(
+        None, ge=1, description="simulations per epoch (Alg. 2); none: derived from the "
+        "state dimension (the paper's 40 000 for two states)")
     dt: float = Field(0.01, gt=0, le=1.0, description="RK4 step (s)")
     max_cost: float | None = Field(
-        None, gt=0, description="stop a simulation when its cost exceeds this (none: the "
-        "paper's 2 at w = 1, scaled by w when time costs more: 2 max(1, w), so segments may "
-        "last up to about 2 s whatever the time weight)")
+        None, gt=0, description="stop a simulation when its cost exceeds this (none: "
+        "derived, the median cost at which pilot simulations leave the reach ball; 2.1 for "
+        "the paper's pendulum, whose bound is 2)")
     max_state_distance: float = Field(1.5, gt=0,
                                       description="... or when |x(t) - x0| exceeds this")
     max_duration: float = Field(20.0, gt=0, le=1000.0,
@@ -125,13 +127,16 @@ class LearnConfig(_Section):
     n_neighbors: int = Field(3, ge=1, description="m, neighbours averaged by k-NN")
     cost_lower: float = Field(1e-5, gt=0, description="saturation of the learned cost-to-go")
     cost_upper: float = Field(1e5, gt=0)
-    validity_threshold: float = Field(0.5, gt=0,
-                                      description="max summed distance to the m neighbours")
+    validity_threshold: float | None = Field(
+        None, gt=0, description="max summed distance to the m neighbours (none: derived, "
+        "the 97% quantile of held-out valid pairs; the paper's 0.5 is the 96.6% quantile "
+        "on its pendulum data)")
     periodic: bool = Field(True, description="angle coordinates wrap around in the distance "
                            "(rows near the seam are indexed one turn over too)")
-    learner: Literal["knn", "mlp"] = Field(
-        "knn", description="J and U from k-NN (the paper) or from a neural network (V stays "
-        "k-NN); mlp needs the optional scikit-learn dependency")
+    learner: Literal["knn", "mlp"] | None = Field(
+        None, description="J and U from k-NN (the paper) or from a neural network (V stays "
+        "k-NN); mlp needs the optional scikit-learn dependency; none: k-NN up to two "
+        "states, mlp above")
     mlp_hidden: list[int] = Field([64, 64, 64], min_length=1, max_length=8,
                                   description="hidden layer widths of the mlp learner")
     mlp_max_iter: int = Field(200, ge=1, le=10_000, description="training epochs at most")
@@ -177,6 +182,9 @@ class PlanConfig(_Section):
                                       "[-pi, 0])")
     goal: list[float] | None = Field(None, description="default: the system's (pendulum: [0, 0])")
     goal_tolerance: float = Field(0.1, gt=0)
+    goal_weights: list[float] | None = Field(
+        None, description="weights of the state coordinates in the goal test, one per state "
+        "(0: a free coordinate, e.g. [1, 1, 0, 0] for angles only); none: all 1")
     wrap_goal: bool = Field(False, description="compare angles modulo a turn in the goal test "
                             "(the paper compares plain coordinates)")
     state_low: list[float] | None = Field(
@@ -186,35 +194,42 @@ class PlanConfig(_Section):
         "states are drawn")
     state_high: list[float] | None = None
     goal_bias: float = Field(0.2, ge=0, le=1)
-    sigma: float = Field(math.pi / 4, gt=0)
-    sigma_goal: float = Field(math.pi / 2, gt=0)
+    sigma: float | None = Field(None, gt=0, description="steering noise around U's "
+                                "prediction; none: 1/8 of the parameters' mean range (the "
+                                "paper's pi/4)")
+    sigma_goal: float | None = Field(None, gt=0, description="the same towards the goal; "
+                                     "none: 1/4 of the range (the paper's pi/2)")
     decimals: int = Field(2, ge=0, le=12)
     time_limit: float | None = Field(10.0, gt=0)
     max_iterations: int | None = Field(None, ge=1)
     obstacles: list[ObstacleConfig] = Field(default_factory=list)
     extend_distance: float | None = Field(
-        None, gt=0, description="move random targets to within this (weighted) distance of "
-        "their nearest node; none: the paper's planner")
-    control_samples: int = Field(
-        1, ge=1, le=1000, description="steering draws per iteration, the one ending nearest "
-        "the target kept; 1: the paper's planner")
+        None, ge=0, description="move random targets to within this (weighted) distance of "
+        "their nearest node; 0: off, the paper's planner; none: derived (off where random "
+        "targets often lie within the data's reach, else a third of the reach)")
+    control_samples: int | None = Field(
+        None, ge=1, le=1000, description="steering draws per iteration, the one ending "
+        "nearest the target kept; 1: the paper's planner; none: 1 with one steering "
+        "parameter, 16 with more")
     max_candidates: int | None = Field(
         32, ge=1, description="query J for only this many nodes nearest the target "
         "(weighted distance, from the tree's nearest-neighbour index), so an iteration's "
         "cost does not grow with the tree; none: every node within reach, the paper's "
         "planner")
-    goal_connect: bool = Field(
-        False, description="in goal-biased iterations, also steer exactly to the goal by "
+    goal_connect: bool | None = Field(
+        None, description="in goal-biased iterations, also steer exactly to the goal by "
         "shooting from U's guess (nearest untried node within the data's reach); false: the "
-        "paper's planner")
+        "paper's planner; none: switched on by the planner once the learned steering stalls "
+        "near the goal (50 goal-biased iterations without a node nearer the goal)")
     connect_reach: float | None = Field(
         None, gt=0, description="goal connection only from nodes within this weighted "
         "distance of the goal; none: the data's reach (generate.max_state_distance)")
-    goal_funnel: int = Field(
-        0, ge=0, le=1_000_000, description="extremals integrated backwards from the goal at "
-        "the start of each plan; in goal-biased iterations the node nearest one of their "
+    goal_funnel: int | None = Field(
+        None, ge=0, le=1_000_000, description="extremals integrated backwards from the goal "
+        "at the start of each plan; in goal-biased iterations the node nearest one of their "
         "states is steered to the goal along it (continuation, then shooting); 0: the "
-        "paper's planner")
+        "paper's planner; none: 20 000 of them, built by the planner once shooting has "
+        "failed from 20 nodes")
     funnel_radius: float = Field(
         0.3, gt=0, description="funnel connection only from nodes within this weighted "
         "distance of a funnel state")
@@ -283,19 +298,34 @@ class Config(_Section):
     plan: PlanConfig = Field(default_factory=PlanConfig)
     experiment: ExperimentConfig = Field(default_factory=ExperimentConfig)
 
+    derived: dict[str, str] = Field(
+        default_factory=dict, description="settings the library derived, and why "
+        "(rrtcolearn.derive; written by the run, informational)")
+
     @property
     def max_cost(self) -> float:
-        """Alg. 2's cost bound: ``generate.max_cost``, or 2 max(1, w) when it is not set.
+        """Alg. 2's cost bound, once derived (`rrtcolearn.derive.pilot_max_cost`)."""
+        if self.generate.max_cost is None:
+            raise ConfigError("generate.max_cost is not derived yet: resolve the "
+                              "configuration first (pipeline.resolve)")
+        return float(self.generate.max_cost)
 
-        The paper's bound of 2 at w = 1 lets a segment last up to 2 s; with a larger time
-        weight the same bound would cut every segment to 2/w seconds (0.2 s at w = 10: 89%
-        of u_max = 1 swing-ups within 10 s at 2.9 s CPU median, against 100% at 92 ms with
-        the scaled bound; bench/limits_bench.py). Below w = 1 the paper's bound stays
-        (w = 0.1, u_max = 1: 100%).
-        """
-        if self.generate.max_cost is not None:
-            return float(self.generate.max_cost)
-        return 2.0 * max(1.0, self.system.time_weight)
+
+# The paper's settings for what the library otherwise derives (rrtcolearn.derive): its
+# pendulum experiment exactly, e.g. to reproduce its figures; `paper_config()`.
+PAPER: dict[str, dict[str, Any]] = {
+    "generate": {"n_simulations": 40_000, "max_cost": 2.0},
+    "learn": {"validity_threshold": 0.5, "learner": "knn"},
+    "plan": {"sigma": math.pi / 4, "sigma_goal": math.pi / 2, "control_samples": 1,
+             "extend_distance": 0.0, "goal_connect": False, "goal_funnel": 0},
+}
+
+
+def paper_config(**sections: dict[str, Any]) -> Config:
+    """The paper's pendulum configuration (`PAPER`), with ``sections`` merged over it."""
+    data = copy.deepcopy(PAPER)
+    _merge(data, copy.deepcopy(sections))
+    return validate(data)
 
 
 def _known_keys(model: type[BaseModel], loc: tuple) -> list[str]:

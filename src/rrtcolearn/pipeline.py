@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rrtcolearn import __version__
-from rrtcolearn.config import Config, read_toml, to_toml
+from rrtcolearn import __version__, derive
+from rrtcolearn.config import Config, PlanConfig, read_toml, to_toml
 from rrtcolearn.data.clean import CleaningResult, clean_data
 from rrtcolearn.data.dataset import Dataset
 from rrtcolearn.data.generate import (
@@ -62,7 +62,7 @@ MODEL_SCHEMA = 1
 NETWORKS_FILE = "networks.npz"
 NETWORKS_FORMAT = "rrtcolearn.networks"
 
-_STREAMS = {"generate": 0, "clean": 1, "plan": 2}
+_STREAMS = {"generate": 0, "clean": 1, "plan": 2, "derive": 3}
 
 
 def seed_stream(seed: int, step: str) -> np.random.SeedSequence:
@@ -98,6 +98,55 @@ def build_system(config: Config) -> System:
     if np.any(system.param_low >= system.param_high):
         raise ConfigError("config: generate.param_low must be below param_high")
     return system
+
+
+def _record(config: Config, choices: list[derive.Choice]) -> Config:
+    """``config`` with each choice's value set and its reason in ``config.derived``."""
+    if not choices:
+        return config
+    data = config.model_dump()
+    for c in choices:
+        section, key = c.key.split(".")
+        data[section][key] = c.value
+        data["derived"][c.key] = c.text
+    return Config.model_validate(data)
+
+
+def resolve(config: Config, system: System | None = None) -> Config:
+    """``config`` with every setting left to the library (None) derived from the system
+    (`rrtcolearn.derive`): Alg. 2's simulations and cost bound, the learner, and the
+    planner's steering noise, control samples and target extension. The validity threshold
+    needs the data and is derived by `fit`. Settings the user gave are kept."""
+    system = system if system is not None else build_system(config)
+    g = config.generate
+    choices = []
+    if g.n_simulations is None:
+        choices.append(derive.n_simulations(system))
+    if g.max_cost is None:
+        choices.append(derive.pilot_max_cost(
+            system, time_weight=config.system.time_weight, dt=g.dt,
+            max_state_distance=g.max_state_distance, max_duration=g.max_duration,
+            seed=seed_stream(config.seed, "derive"), u_max=config.system.truncation_limit))
+    if config.learn.learner is None:
+        choices.append(derive.learner(system))
+    choices += _plan_choices(config.plan, system, g.max_state_distance)
+    return _record(config, choices)
+
+
+def _plan_choices(plan: PlanConfig, system: System, max_state_distance: float
+                  ) -> list[derive.Choice]:
+    """The derived planner settings that ``plan`` leaves open."""
+    sigma, sigma_goal = derive.steering_sigmas(system)
+    wanted = {"sigma": lambda: sigma, "sigma_goal": lambda: sigma_goal,
+              "control_samples": lambda: derive.control_samples(system),
+              "extend_distance": lambda: derive.extend_distance(system, max_state_distance)}
+    return [make() for key, make in wanted.items() if getattr(plan, key) is None]
+
+
+def _resolved_plan(plan: PlanConfig, system: System, max_state_distance: float
+                   ) -> PlanConfig:
+    choices = _plan_choices(plan, system, max_state_distance)
+    return plan.model_copy(update={c.key.split(".")[1]: c.value for c in choices})
 
 
 def _with_configured_limits(config: Config, system: System) -> System:
@@ -160,6 +209,7 @@ def generate(config: Config, run_dir: str | Path,
     """
     run_dir = Path(run_dir)
     system = build_system(config)
+    config = resolve(config, system)
     key = _generation_key(config, system)
     final = run_dir / DATASET_FILE
     if final.is_file():
@@ -230,6 +280,8 @@ def _with_sections(config: Config, meta: dict, sections: tuple[str, ...]) -> Con
     """``config`` with ``sections`` taken from the artefact it consumes (the truth about it)."""
     stored = meta.get("config", {})
     update = {s: getattr(Config.model_validate(stored), s) for s in sections if s in stored}
+    # the reasons of what was derived before travel with the artefact
+    update["derived"] = {**stored.get("derived", {}), **config.derived}
     return config.model_copy(update=update)
 
 
@@ -243,20 +295,34 @@ class FittedModel:
     max_duration: float
     max_state_distance: float
 
-    def planner_settings(self, config: Config | None = None) -> PlannerSettings:
-        p = (config or self.config).plan
+    def __post_init__(self) -> None:
+        # a model assembled by hand from an unresolved configuration: derive what is open,
+        # and take V's threshold from the fitted classifier (the truth about it)
         learn = self.config.learn
+        if learn.validity_threshold is None:
+            self.config = _record(self.config, [derive.Choice(
+                "learn.validity_threshold", float(self.functions.validity.threshold),
+                "the fitted classifier's")])
+        if learn.learner is None:
+            self.config = _record(self.config, [derive.Choice(
+                "learn.learner", "mlp" if self.functions.networks is not None else "knn",
+                "the fitted learner")])
+        self.config = resolve(self.config, self.system)
+
+    def planner_settings(self, config: Config | None = None) -> PlannerSettings:
+        p = _resolved_plan((config or self.config).plan, self.system,
+                           self.max_state_distance)
         # a query (x0, x1) farther apart than this cannot have m neighbours within the
         # validity threshold, since every data pair is at most max_state_distance apart
         # (in raw units: a weighted distance r is at most r / min(weight) raw)
-        reach = (self.max_state_distance + np.sqrt(2.0) * learn.validity_threshold
-                 / learn.n_neighbors) / float(self.system.metric_scale.min())
+        reach = (self.max_state_distance + np.sqrt(2.0) * self.functions.validity.threshold
+                 / self.functions.n_neighbors) / float(self.system.metric_scale.min())
         return PlannerSettings(
             time_weight=self.config.system.time_weight, dt=self.config.generate.dt,
             goal_bias=p.goal_bias, sigma=p.sigma, sigma_goal=p.sigma_goal,
             decimals=p.decimals, max_duration=self.max_duration, reach=float(reach),
             input_limit=p.input_limit,
-            extend_distance=np.inf if p.extend_distance is None else p.extend_distance,
+            extend_distance=p.extend_distance or np.inf,  # 0: off
             metric_scale=self.system.metric_scale, control_samples=p.control_samples,
             max_candidates=2**62 if p.max_candidates is None else p.max_candidates,
             goal_connect=p.goal_connect,
@@ -273,6 +339,8 @@ def fit_functions(system: System, data: Dataset, config: Config, *,
                   train_networks: bool = True) -> LearnedFunctions:
     """Fit J, U and V on a (cleaned) dataset with the configured learner parameters
     (with ``learn.learner = "mlp"`` and ``train_networks``, also the J and U networks)."""
+    if config.learn.validity_threshold is None or config.learn.learner is None:
+        config = _record(config, _learn_choices(system, data, config))
     learn = config.learn
     if learn.cost_lower >= learn.cost_upper:
         raise ConfigError("config: learn.cost_lower must be below learn.cost_upper")
@@ -284,9 +352,7 @@ def fit_functions(system: System, data: Dataset, config: Config, *,
         n_neighbors=learn.n_neighbors, cost_bounds=(learn.cost_lower, learn.cost_upper),
         validity_threshold=learn.validity_threshold, circular=system.param_circular,
         low=tuple(system.param_low), high=tuple(system.param_high),
-        input_scale=system.metric_scale,
-        periodic=tuple((j, float(system.state_low[j]), float(system.state_high[j]))
-                       for j in system.angle_dims) if learn.periodic else ())
+        input_scale=system.metric_scale, periodic=_periodic(system, config))
     if learn.learner == "mlp" and train_networks:
         try:
             functions.fit_networks(
@@ -297,6 +363,31 @@ def fit_functions(system: System, data: Dataset, config: Config, *,
         except ImportError as exc:
             raise EnvironmentProblem(str(exc)) from None
     return functions
+
+
+def _learn_choices(system: System, data: Dataset, config: Config) -> list[derive.Choice]:
+    """The learner settings ``config`` leaves open, derived from the system and the data."""
+    learn = config.learn
+    choices = [] if learn.learner is not None else [derive.learner(system)]
+    if learn.validity_threshold is None:
+        if len(data) < learn.n_neighbors:
+            raise ArtefactError(f"the cleaned dataset has {len(data)} points, fewer than "
+                                f"learn.n_neighbors = {learn.n_neighbors}")
+        try:
+            choices.append(derive.validity_threshold(
+                data.inputs, data.simulation, system.metric_scale, learn.n_neighbors,
+                seed_stream(config.seed, "derive"), _periodic(system, config)))
+        except ValueError as exc:
+            raise ArtefactError(str(exc)) from None
+    return choices
+
+
+def _periodic(system: System, config: Config) -> tuple[tuple[int, float, float], ...]:
+    """Angle coordinates as (j, low, high) for the learners, when they wrap."""
+    if not config.learn.periodic:
+        return ()
+    return tuple((j, float(system.state_low[j]), float(system.state_high[j]))
+                 for j in system.angle_dims)
 
 
 def _save_networks(functions: LearnedFunctions, path: Path, meta: dict) -> str | None:
@@ -329,6 +420,8 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
     system = build_system(config)
     data, meta = load_dataset(run_dir / CLEANED_FILE, system.name)
     config = _with_sections(config, meta, ("system", "generate", "clean"))
+    config = resolve(config, system)
+    config = _record(config, _learn_choices(system, data, config))
     functions = fit_functions(system, data, config)
     save_config(config, run_dir)
     networks_sha = _save_networks(functions, run_dir / NETWORKS_FILE,
@@ -421,11 +514,13 @@ def query_states(config: Config, system: System) -> tuple[list[float], list[floa
 def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, *,
          config: Config | None = None, time_limit: float | None = 10.0,
          max_iterations: int | None = None, u_max=_FROM_CONFIG, obstacles=_FROM_CONFIG,
-         is_valid=None) -> Plan:
+         is_valid=None, goal_fn=None, goal_sampler=None) -> Plan:
     """Plan one query with a fitted model (Alg. 1).
 
     ``u_max`` and ``obstacles`` default to the configuration's (``config`` or the model's);
-    ``is_valid(states) -> bool array`` adds a user state validity checker. A model whose
+    ``is_valid(states) -> bool array`` adds a user state validity checker;
+    ``goal_fn(states) -> distances`` and ``goal_sampler(rng) -> state`` a user goal region
+    (`PlanningProblem`; reached where the distance is at most ``goal_tolerance``). A model whose
     system saturates its inputs plans within the limits it learned with (a different
     ``u_max`` needs a model trained for it: ConfigError); a model of the unbounded system
     plans under ``u_max`` by truncation (edges whose input exceeds it are rejected or cut,
@@ -453,7 +548,9 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
                                      obstacles=obstacles, is_valid=is_valid,
                                      wrap_goal=cfg.plan.wrap_goal,
                                      state_low=cfg.plan.state_low,
-                                     state_high=cfg.plan.state_high)
+                                     state_high=cfg.plan.state_high,
+                                     goal_weights=cfg.plan.goal_weights, goal_fn=goal_fn,
+                                     goal_sampler=goal_sampler)
     planner = RRTCoLearn(problem, model.functions, model.planner_settings(config))
     result = planner.solve(TerminationCondition(time_limit, max_iterations), seed)
     result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -68,13 +68,39 @@ def state_bounds(system: System, low=None, high=None) -> tuple[np.ndarray, np.nd
     return out[0], out[1]
 
 
+GoalDistance = Callable[[np.ndarray], np.ndarray]
+"""A user goal: states (N, n) -> distance (N,) to the goal region; the goal is reached where
+it is at most the goal tolerance (OMPL's GoalRegion::distanceGoal)."""
+GoalSampler = Callable[[np.random.Generator], np.ndarray]
+"""Draws one goal state (n,) (OMPL's GoalSampleableRegion::sampleGoal)."""
+
+
+def _goal_weights(system: System, weights) -> np.ndarray | None:
+    """(n,) non-negative goal weights with a positive one, or None (all 1)."""
+    if weights is None:
+        return None
+    try:
+        w = np.asarray(weights, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ProblemError(f"goal_weights must be {system.n_states} numbers") from None
+    if w.shape != (system.n_states,) or not np.all(np.isfinite(w)) or np.any(w < 0) \
+            or not np.any(w > 0):
+        raise ProblemError(f"goal_weights needs {system.n_states} finite non-negative "
+                           f"numbers, not all zero (0: a free coordinate), got {weights!r}")
+    return None if np.all(w == 1) else w
+
+
 @dataclass(frozen=True)
 class PlanningProblem:
     """Plan from ``start`` to the ball of radius ``goal_tolerance`` around ``goal``.
 
     The goal test is the Euclidean distance in state coordinates (paper Experiments); with
     ``wrap_goal`` angle coordinates are compared modulo a turn (upright is upright, whichever
-    way round the tree got there).
+    way round the tree got there). ``goal_weights`` (n,) weight the coordinates in that
+    distance (0: a free coordinate, e.g. velocities free). A user goal region replaces the
+    ball: ``goal_fn`` gives the distance to it and ``goal_sampler`` draws states in it (the
+    targets of goal-biased iterations); ``goal`` is then a state in the region, where the goal
+    connections aim.
     ``u_max`` bounds |u| along every edge (None: unbounded, the paper's setting);
     ``validity`` is the state validity checker (obstacles), checked at every RK4 step.
     ``state_low``/``state_high`` are the state constraints: an edge that leaves them in a
@@ -91,6 +117,9 @@ class PlanningProblem:
     wrap_goal: bool = False
     state_low: np.ndarray | None = None
     state_high: np.ndarray | None = None
+    goal_weights: np.ndarray | None = None
+    goal_fn: GoalDistance | None = None
+    goal_sampler: GoalSampler | None = None
 
     def __post_init__(self) -> None:
         if self.state_low is None or self.state_high is None:
@@ -103,11 +132,16 @@ class PlanningProblem:
                u_max: float | None = None,
                obstacles: Sequence[Obstacle | dict] = (),
                is_valid: StateValidityChecker | None = None,
-               wrap_goal: bool = False, state_low=None, state_high=None) -> PlanningProblem:
+               wrap_goal: bool = False, state_low=None, state_high=None,
+               goal_weights=None, goal_fn: GoalDistance | None = None,
+               goal_sampler: GoalSampler | None = None) -> PlanningProblem:
         """Validated problem; raises ProblemError with a one-line reason."""
         low, high = state_bounds(system, state_low, state_high)
         start = check_state(system, start, "start", low, high)
         goal = check_state(system, goal, "goal", low, high)
+        weights = _goal_weights(system, goal_weights)
+        if goal_sampler is not None and goal_fn is None:
+            raise ProblemError("a goal sampler needs its goal function (goal_fn)")
         try:
             tol = float(goal_tolerance)
         except (TypeError, ValueError):
@@ -130,8 +164,34 @@ class PlanningProblem:
             for what, x in (("start", start), ("goal", goal)):
                 if not validity(x[None])[0]:
                     raise ProblemError(f"the {what} {x.tolist()} lies inside an obstacle")
-        return cls(system, start, goal, tol, None if u_max is None else float(u_max),
-                   validity, bool(wrap_goal), low, high)
+        problem = cls(system, start, goal, tol, None if u_max is None else float(u_max),
+                      validity, bool(wrap_goal), low, high, weights, goal_fn, goal_sampler)
+        if goal_fn is not None:
+            problem._check_goal_region()
+        return problem
+
+    def _check_goal_region(self) -> None:
+        """The user goal function and sampler answer in the right shapes, and ``goal`` and the
+        sampler's states lie in the region."""
+        try:
+            d = np.asarray(self.goal_fn(np.stack([self.goal, self.start])), dtype=np.float64)
+        except Exception as exc:
+            raise ProblemError(f"the goal function failed on (goal, start): {exc}") from None
+        if d.shape != (2,) or not np.all(np.isfinite(d)):
+            raise ProblemError(f"the goal function must map states (N, n) to N finite "
+                               f"distances, got {d!r} for 2 states")
+        if d[0] > self.goal_tolerance:
+            raise ProblemError(f"the goal state {self.goal.tolist()} is not in the goal region "
+                               f"(distance {d[0]:g} > tolerance {self.goal_tolerance:g})")
+        if self.goal_sampler is not None:
+            rng = np.random.default_rng(0)
+            x = np.asarray(self.goal_sampler(rng), dtype=np.float64)
+            if x.shape != self.goal.shape or not np.all(np.isfinite(x)):
+                raise ProblemError(f"the goal sampler must return one finite state of "
+                                   f"{self.goal.size} numbers, got {x!r}")
+            if self.goal_distance(x)[0] > self.goal_tolerance:
+                raise ProblemError(f"the goal sampler drew {x.tolist()}, outside the goal "
+                                   "region")
 
     def within_bounds(self, x: np.ndarray) -> np.ndarray:
         """(N,) True where states (N, n) lie inside the state box in its non-angle coordinates.
@@ -150,12 +210,38 @@ class PlanningProblem:
 
     def goal_offset(self, x: np.ndarray) -> np.ndarray:
         """x - goal (N, n), angle coordinates the short way round when ``wrap_goal``."""
-        diff = np.atleast_2d(x) - self.goal
+        return self.offset_to(x, self.goal)
+
+    def offset_to(self, x: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """x - target (N, n), angles as in `goal_offset`."""
+        diff = np.atleast_2d(x) - target
         angles = list(self.goal_angles)
         if angles:
             diff[:, angles] = np.mod(diff[:, angles] + np.pi, 2.0 * np.pi) - np.pi
         return diff
 
+    def goal_residual(self, x: np.ndarray) -> np.ndarray:
+        """``goal_offset`` weighted by ``goal_weights`` (N, n): the equations a goal
+        connection solves (free coordinates give none)."""
+        diff = self.goal_offset(x)
+        return diff if self.goal_weights is None else diff * self.goal_weights
+
     def goal_distance(self, x: np.ndarray) -> np.ndarray:
-        """Euclidean distance of states (N, n) to the goal (see ``wrap_goal``)."""
-        return np.linalg.norm(self.goal_offset(x), axis=1)
+        """Distance of states (N, n) to the goal region: the user's ``goal_fn``, else the
+        weighted Euclidean distance to ``goal`` (see ``wrap_goal``, ``goal_weights``)."""
+        if self.goal_fn is not None:
+            return np.asarray(self.goal_fn(np.atleast_2d(x)), dtype=np.float64)
+        return np.linalg.norm(self.goal_residual(x), axis=1)
+
+    def sample_goal(self, rng: np.random.Generator) -> np.ndarray:
+        """A goal-biased iteration's target: the user sampler's draw; with free coordinates
+        (weight 0) the goal with those drawn uniformly from the state constraints; else the
+        goal itself (drawing nothing: the paper's planner)."""
+        if self.goal_sampler is not None:
+            return np.asarray(self.goal_sampler(rng), dtype=np.float64)
+        if self.goal_weights is None or np.all(self.goal_weights > 0):
+            return self.goal
+        free = self.goal_weights == 0
+        x = self.goal.copy()
+        x[free] = rng.uniform(self.state_low[free], self.state_high[free])
+        return x

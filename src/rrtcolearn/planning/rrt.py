@@ -44,13 +44,17 @@ class PlannerSettings:
         queried for J; unlimited in the paper's planner.
     goal_connect : in each goal-biased iteration, also try to steer exactly to the goal from
         the nearest tree node not tried before, by shooting (`planning.shooting`) from U's
-        prediction; off in the paper's planner.
+        prediction; off in the paper's planner. None (auto): switched on once the learned
+        steering stalls near the goal (`CONNECT_AFTER` goal-biased iterations in a row
+        without a node nearer the goal).
     connect_reach : nodes farther than this (weighted) from the goal are not tried: the data
         hold no longer segments, so U's guess means nothing there.
     goal_funnel : number of extremals integrated backwards from the goal at the start of
         `solve` (`planning.funnel`); in each goal-biased iteration the untried node nearest a
         funnel state (weighted) is steered to the goal from that state's extremal. 0 (off):
-        the paper's planner.
+        the paper's planner. None (auto): `AUTO_FUNNEL` extremals, built once shooting has
+        failed from `FUNNEL_AFTER` nodes (where the boundary value problem into the goal is
+        ill-conditioned, continuation along the funnel still connects).
     funnel_radius : nodes farther than this (weighted) from every funnel state are not tried.
     funnel_duration, funnel_max_cost : the funnel's extremals end after this time or cost.
     funnel_min_duration : funnel states less than this time from the goal are dropped.
@@ -73,9 +77,9 @@ class PlannerSettings:
     metric_scale: np.ndarray | None = None
     control_samples: int = 1
     max_candidates: int = 2**62
-    goal_connect: bool = False
+    goal_connect: bool | None = False
     connect_reach: float = np.inf
-    goal_funnel: int = 0
+    goal_funnel: int | None = 0
     funnel_radius: float = 0.3
     funnel_duration: float = 3.0
     funnel_min_duration: float = 0.0
@@ -131,6 +135,13 @@ def diagnose(outcomes: dict, stalled: bool, nodes: int, truncating: bool) -> str
 _TRUNCATION_ADVICE = (" (with limit_mode 'truncate', extremals that break the limit at once "
                       "leave no data: use 'saturate', where the optimal control rides the "
                       "limit)")
+
+# automatic goal connection (goal_connect / goal_funnel None): shooting from the nearest
+# nodes once this many goal-biased iterations in a row brought no node nearer the goal, and
+# a funnel of AUTO_FUNNEL extremals once shooting has failed from FUNNEL_AFTER nodes
+CONNECT_AFTER = 50
+FUNNEL_AFTER = 20
+AUTO_FUNNEL = 20_000
 
 _FUNNEL_POINTS = 3  # funnel states tried per node (each on its own extremal, nearest first)
 _FUNNEL_STRETCH = 1.5  # a funnel connection may last this times the funnel's duration
@@ -188,8 +199,8 @@ class RRTCoLearn:
         self._rejected = "no_costate"  # why the last draw gave no edge (OUTCOMES)
         self._indices: tuple[NodeIndex, ...] = ()  # kept up to date by _add_edge
         sys = problem.system
-        if (self.settings.goal_connect or self.settings.goal_funnel) and \
-                sys.params_from_costate is None:
+        explicit = self.settings.goal_connect is True or bool(self.settings.goal_funnel)
+        if explicit and sys.params_from_costate is None:
             raise ConfigError(f"system {sys.name!r} has no params_from_costate: the goal "
                               "connection and the goal funnel need it (plan.goal_connect, "
                               "plan.goal_funnel)")
@@ -280,8 +291,11 @@ class RRTCoLearn:
             over = np.flatnonzero(u_all[1:] > u_max)
             if over.size:
                 end = min(end, int(over[0]))
-        gd = prob.goal_offset(path[:end])
-        hit = np.flatnonzero(np.einsum("ij,ij->i", gd, gd) <= prob.goal_tolerance**2)
+        if prob.goal_fn is None:
+            gd = prob.goal_residual(path[:end])
+            hit = np.flatnonzero(np.einsum("ij,ij->i", gd, gd) <= prob.goal_tolerance**2)
+        else:
+            hit = np.flatnonzero(prob.goal_distance(path[:end]) <= prob.goal_tolerance)
         if hit.size:
             end = int(hit[0]) + 1
         if end == 0:
@@ -310,7 +324,7 @@ class RRTCoLearn:
         m = tree.n_nodes
         states = tree.states[:m]
         offset = prob.goal_offset(states)
-        wd = offset * weight
+        wd = prob.goal_residual(states) * weight
         d2 = np.einsum("ij,ij->i", wd, wd)
         d2[tried[:m] | (d2 > s.connect_reach**2)] = np.inf
         node = int(np.argmin(d2))
@@ -335,7 +349,7 @@ class RRTCoLearn:
         """The edge to the goal that shooting finds from ``x0`` starting at ``params`` and
         ``duration``, checked like every edge; None unless it reaches the goal region."""
         prob, sys, s = self.problem, self.problem.system, self.settings
-        res = shoot(sys, x0, params, duration, prob.goal_offset, time_weight=s.time_weight,
+        res = shoot(sys, x0, params, duration, prob.goal_residual, time_weight=s.time_weight,
                     dt=s.dt, max_duration=max_duration,
                     tolerance=0.25 * prob.goal_tolerance, max_iterations=20)
         if res is None:
@@ -389,6 +403,20 @@ class RRTCoLearn:
                 return node, edge
         return None
 
+    def _build_funnel(self, rng: np.random.Generator, weight: np.ndarray,
+                      n_simulations: int) -> _FunnelSearch:
+        """The goal funnel of ``n_simulations`` extremals and its per-node search state
+        (built inside the timed region: its CPU time counts as planning time)."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        funnel = GoalFunnel.build(
+            sys, prob.goal, prob.goal_offset, rng, n_simulations=n_simulations,
+            time_weight=s.time_weight, dt=s.dt, max_duration=s.funnel_duration,
+            max_cost=s.funnel_max_cost, scale=weight,
+            tolerance=prob.goal_tolerance, min_duration=s.funnel_min_duration,
+            box=(prob.state_low, prob.state_high))
+        return _FunnelSearch(funnel, np.full((256, _FUNNEL_POINTS), np.inf),
+                             np.zeros((256, _FUNNEL_POINTS), int), np.zeros(256, bool))
+
     def _add_edge(self, tree: PlannerData, parent: int, edge) -> int:
         """Add the node at the end of ``edge`` (as `_edge` returns it) below ``parent``."""
         traj, params, lam, steps, u_abs, _ = edge
@@ -434,17 +462,18 @@ class RRTCoLearn:
         cpu0 = time.thread_time()
         termination.start()
         search = None
+        # the goal connections: on from the start, off, or (None) switched on by the planner
+        can_connect = sys.params_from_costate is not None
+        connecting = s.goal_connect is True
+        auto_connect = s.goal_connect is None and can_connect
+        auto_funnel = s.goal_funnel is None and can_connect
         if s.goal_funnel:
-            # built inside the timed region: its CPU time counts as planning time
-            funnel = GoalFunnel.build(
-                sys, prob.goal, prob.goal_offset, rng, n_simulations=s.goal_funnel,
-                time_weight=s.time_weight, dt=s.dt, max_duration=s.funnel_duration,
-                max_cost=s.funnel_max_cost, scale=weight,
-                tolerance=prob.goal_tolerance, min_duration=s.funnel_min_duration,
-                box=(prob.state_low, prob.state_high))
-            search = _FunnelSearch(funnel, np.full((256, _FUNNEL_POINTS), np.inf),
-                                   np.zeros((256, _FUNNEL_POINTS), int), np.zeros(256, bool))
-        if prob.goal_distance(prob.start)[0] <= prob.goal_tolerance:
+            search = self._build_funnel(rng, weight, s.goal_funnel)
+        best_goal = float(prob.goal_distance(prob.start)[0])
+        since_nearer = 0  # goal-biased iterations since a node came nearer the goal
+        failed_shots = 0
+        switched = {}  # when the automatic connections were switched on (iteration)
+        if best_goal <= prob.goal_tolerance:
             goal_node = 0
         while goal_node < 0 and not termination(iterations):
             if s.stall_iterations and iterations - last_growth >= s.stall_iterations:
@@ -452,15 +481,27 @@ class RRTCoLearn:
                 break
             iterations += 1
             to_goal = rng.random() < s.goal_bias
-            target = prob.goal if to_goal else rng.uniform(sys.state_low, sys.state_high)
+            target = prob.sample_goal(rng) if to_goal else \
+                rng.uniform(sys.state_low, sys.state_high)
             m = tree.n_nodes
-            if to_goal and s.goal_connect:
+            if to_goal:
+                since_nearer += 1
+                if auto_connect and not connecting and since_nearer >= CONNECT_AFTER:
+                    connecting = True  # the learned steering stalls near the goal
+                    switched["shooting"] = iterations
+            if to_goal and connecting:
                 tried = _grown(tried, m, False)
+                before = int(tried[:m].sum())
                 found = self._connect_goal(tree, shifts, tried, weight, lam, z0)
                 if found is not None:
                     goal_node = self._add_edge(tree, *found)
                     connection = "shooting"
                     break
+                failed_shots += int(tried[:m].sum()) - before
+                if auto_funnel and search is None and failed_shots >= FUNNEL_AFTER:
+                    # shooting does not get into the goal: continuation along a funnel
+                    search = self._build_funnel(rng, weight, AUTO_FUNNEL)
+                    switched["funnel"] = iterations
             if to_goal and search is not None:
                 found = self._connect_funnel(tree, search, lam, z0)
                 if found is not None:
@@ -478,7 +519,8 @@ class RRTCoLearn:
             else:  # the paper's planner: every node within reach
                 near = np.arange(m)
             # each node aims at the goal's image nearest to it (angles modulo a turn)
-            aims = states[near] - prob.goal_offset(states[near]) if aim_images else target
+            aims = states[near] - prob.offset_to(states[near], target) if aim_images \
+                else target
             diff = states[near] - aims
             within = np.einsum("ij,ij->i", diff, diff) <= reach2
             near = near[within]
@@ -529,6 +571,9 @@ class RRTCoLearn:
             last_growth = iterations
             node = self._add_edge(tree, parent, edge)
             traj, hit = edge[0], edge[5]
+            d_goal = float(prob.goal_distance(traj[-1:, :n])[0])
+            if d_goal < best_goal:
+                best_goal, since_nearer = d_goal, 0
             if node == shifts.shape[0]:
                 shifts = np.concatenate([shifts, np.empty_like(shifts)])
             shifts[node] = sys.wrap_shift(traj[-1:, :n])[0]
@@ -542,6 +587,7 @@ class RRTCoLearn:
             dist = prob.goal_distance(tree.states[: tree.n_nodes])
             end = int(np.argmin(dist))
             status = "approximate" if end != 0 else "timeout"
+        region = prob.goal_fn is not None or prob.goal_weights is not None
         input_low, input_high = sys.input_limits() if sys.input_limited else (None, None)
         return Plan(
             system=sys.name, start=prob.start, goal=prob.goal,
@@ -551,10 +597,13 @@ class RRTCoLearn:
             input_low=input_low, input_high=input_high,
             obstacles=[o.to_dict() for o in prob.validity.obstacles],
             goal_angles=prob.goal_angles,
+            end_goal_distance=float(prob.goal_distance(tree.states[end])[0]) if region
+            else None,
             # which edge reached the goal: the learned steering's, or a connection's
             extra={**({"goal_connected": connection is not None, "connection": connection,
-                       **({"funnel_states": len(search.funnel)} if search else {})}
-                      if s.goal_connect or search else {}),
+                       **({"funnel_states": len(search.funnel)} if search else {}),
+                       **({"connections_switched_on": switched} if switched else {})}
+                      if connecting or search else {}),
                    "outcomes": outcomes, "stalled": stalled,
                    **({} if goal_node >= 0 else {"diagnosis": diagnose(
                        outcomes, stalled, tree.n_nodes, prob.u_max is not None)})},

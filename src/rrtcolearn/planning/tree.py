@@ -86,6 +86,9 @@ class Plan:
     # (m,) input box of a saturated system: every edge's u* = clip(-R^-1 B^T lambda, low, high)
     input_low: np.ndarray | None = None
     input_high: np.ndarray | None = None
+    # the path end's distance to the goal region as the planner's goal test measured it
+    # (weighted or a user goal function); None: the plain distance to ``goal``
+    end_goal_distance: float | None = None
 
     @property
     def limit_mode(self) -> str | None:
@@ -127,9 +130,12 @@ class Plan:
 
     @property
     def final_goal_distance(self) -> float | None:
-        """Distance of the path's end to the goal (angles in ``goal_angles`` modulo a turn)."""
+        """Distance of the path's end to the goal (angles in ``goal_angles`` modulo a turn), or
+        to the goal region of the planner's goal test."""
         if not self.path_nodes:
             return None
+        if self.end_goal_distance is not None:
+            return float(self.end_goal_distance)
         diff = self.tree.states[self.path_nodes[-1]] - self.goal
         for j in self.goal_angles:
             diff[j] = (diff[j] + np.pi) % (2.0 * np.pi) - np.pi

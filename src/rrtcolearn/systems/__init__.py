@@ -99,38 +99,13 @@ def _quadrotor() -> System:
     return make_quadrotor()
 
 
-# Recommended configurations: the pendulum's are the package defaults (the paper's); the
-# others were chosen by measurement (README "Other systems", bench/systems_bench.py).
-_HIGHER_DIMENSIONAL_PLAN = {
-    # steering parameters are costate directions in [-1, 1]: the pendulum's sigmas (pi/4 and
-    # pi/2 on a 2*pi range) scaled to that range would be 0.25 and 0.5
-    "sigma": 0.25, "sigma_goal": 0.5,
-    "control_samples": 16, "max_candidates": 8, "extend_distance": 0.5,
-    "goal_tolerance": 0.3, "wrap_goal": True, "time_limit": 60.0,
-}
+# What a user would state about these systems' standard queries (their goal regions and
+# time limits); every learner and planner setting is derived (rrtcolearn.derive).
+_SWING_UP = {"goal_tolerance": 0.3, "wrap_goal": True, "time_limit": 60.0}
 register("pendulum", make_pendulum)
-register("double_integrator", _double_integrator, {
-    "name": "double-integrator",
-    "generate": {"n_simulations": 100_000},
-})
-register("cartpole", _cartpole, {
-    "name": "cartpole-swingup",
-    "generate": {"n_simulations": 100_000, "max_cost": 50.0},
-    "learn": {"validity_threshold": 2.0, "learner": "mlp"},
-    # the last edge by shooting, tried from nodes within weighted distance 2 of the goal:
-    # 50 of 50 seeded swing-ups within 60 s (49 of 50 within the data's reach of 1.5; README)
-    "plan": {**_HIGHER_DIMENSIONAL_PLAN, "goal_connect": True, "connect_reach": 2.0},
-})
-register("acrobot", _acrobot, {
-    "name": "acrobot-swingup",
-    "generate": {"n_simulations": 100_000, "max_cost": 50.0},
-    "learn": {"validity_threshold": 2.0, "learner": "mlp"},
-    # shooting from U's guess gives no edge into the upright (the boundary value problem is
-    # ill-conditioned there); continuation along extremals from the goal does: 50 of 50
-    # seeded swing-ups within 60 s (60 000 extremals, their states at least 1 s from the
-    # goal kept; README)
-    "plan": {**_HIGHER_DIMENSIONAL_PLAN, "goal_funnel": 60_000, "funnel_min_duration": 1.0},
-})
+register("double_integrator", _double_integrator, {"name": "double-integrator"})
+register("cartpole", _cartpole, {"name": "cartpole-swingup", "plan": _SWING_UP})
+register("acrobot", _acrobot, {"name": "acrobot-swingup", "plan": _SWING_UP})
 register("quadrotor", _quadrotor)
 
 __all__ = ["System", "list_systems", "make", "recommended_config", "register"]
