@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench bench-systems bench-iterations bench-limits lint clean-venv
+.PHONY: run test bench bench-systems bench-external bench-derived bench-iterations bench-limits lint clean-venv
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,16 @@ bench: $(STAMP)
 # the per-system figures in full (50 seeded swing-ups of at most 60 s each): about 30 minutes
 bench-systems: $(STAMP)
 	$(BIN)/python bench/systems_bench.py
+
+# sparse_rrt's cart-pole and acrobot (examples/) with every setting derived, 20 seeds of at
+# most 60 s each, with the ratio to sparse_rrt's SST: about 40 minutes per problem
+bench-external: $(STAMP)
+	$(BIN)/python bench/systems_bench.py --queries 20 --systems \
+	    examples.sparse_rrt_cartpole:make_cartpole,examples.sparse_rrt_acrobot:make_acrobot
+
+# the pendulum with derived settings beside the paper's, side by side (about 3 minutes)
+bench-derived: $(STAMP)
+	$(BIN)/python bench/derived_ab.py
 
 # planner iteration cost at 100, 1 000 and 10 000 tree nodes (about a minute)
 bench-iterations: $(STAMP)

@@ -56,6 +56,15 @@ QUICK = {
                  "learn.mlp_max_samples=30000"), 5, 10.0),
 }
 TARGETS = {"double_integrator": 1.0, "cartpole": 1.0, "acrobot": 0.9}
+# problems of other planners' suites (examples/, typed in through the public API) and their
+# anchors: sparse_rrt's SST, median CPU seconds to the first solution on this machine
+# (/work/shared/problems/EXTERNAL.md); `make bench-external`
+EXTERNAL = {
+    "examples.sparse_rrt_cartpole:make_cartpole": 9.6,
+    "examples.sparse_rrt_acrobot:make_acrobot": 2.2,
+    "examples.sparse_rrt_cartpole:make_cartpole_wide": 9.6,
+    "examples.sparse_rrt_acrobot:make_acrobot_wide": 2.2,
+}
 # under limits (fraction of the unbounded plans' median max |u|): success over >= 20 queries
 LIMIT_TARGETS = {0.5: 0.9}
 LIMIT_TARGET_QUERIES = 20
@@ -149,6 +158,7 @@ def bench_system(name: str, queries: int, time_limit: float | None,
     row.update(goal_tolerance=cfg.plan.goal_tolerance, time_limit_s=limit, queries=queries,
                success_rate=round(float(np.mean([p.solved for p in plans])), 3),
                plan_cpu_s_median=round(float(np.median([p.planning_cpu_s for p in plans])), 4),
+               plan_cpu_s_mean=round(float(np.mean([p.planning_cpu_s for p in plans])), 4),
                plan_wall_s_median=round(float(np.median([p.planning_time_s for p in plans])),
                                         4),
                plan_nodes_median=float(np.median([p.nodes for p in plans])),
@@ -188,6 +198,10 @@ def bench_system(name: str, queries: int, time_limit: float | None,
         row["limit_respected"] = bool(worst <= u_max)
         row["max_abs_u_over_limit"] = float(worst - u_max) if solved else None
         return row
+    anchor = EXTERNAL.get(name)
+    if anchor is not None:  # the median over all queries, unsolved ones at their full CPU
+        row.update(anchor_cpu_s=anchor,
+                   cpu_ratio_to_anchor=round(row["plan_cpu_s_median"] / anchor, 3))
     target = TARGETS.get(name)
     if target is not None:
         row["success_target"] = target

@@ -106,13 +106,18 @@ def _make(name: str, velocity_scale: float) -> SymbolicSystem:
         description="sparse_rrt two_link_acrobot (damped, |tau| <= 4), theta1 = 0 hanging"
                     + ("" if velocity_scale == 1.0 else
                        f"; velocity bounds x{velocity_scale:g}"),
-        defaults={"start": list(START), "goal": list(GOAL)},
+        # the standard query with sparse_rrt's task-space goal region (velocities free): the
+        # pipeline plans to it whenever the goal is this default one
+        defaults={"start": list(START), "goal": list(GOAL), "goal_fn": task_goal_distance,
+                  "goal_sampler": sample_task_goal,
+                  "config": {"plan": {"goal_tolerance": TASK_GOAL_RADIUS,
+                                      "time_limit": 60.0}}},
     )
 
 
 def make_acrobot() -> SymbolicSystem:
-    """sparse_rrt's acrobot with its stated bounds as the box and its swing-up query (goal:
-    the state ball `GOAL_RADIUS`, see the module docstring)."""
+    """sparse_rrt's acrobot with its stated bounds as the box and its swing-up query, to
+    sparse_rrt's task-space goal region (`task_goal_distance`, `sample_task_goal`)."""
     return _make("sparse_rrt_acrobot", 1.0)
 
 
@@ -129,12 +134,29 @@ def end_effector(theta1, theta2):
                                         np.sin(t1) + np.sin(t1 + t2)], axis=-1)
 
 
-def in_task_goal(states) -> np.ndarray:
-    """sparse_rrt's goal test on states (N, 4): end effector within 2 of the goal's."""
+def task_goal_distance(states) -> np.ndarray:
+    """Distance (N,) of states (N, 4) to sparse_rrt's goal: the end effector's distance to the
+    goal's; the goal is reached within `TASK_GOAL_RADIUS` (the plan's goal tolerance)."""
     states = np.atleast_2d(states)
     goal = end_effector(GOAL[0], GOAL[1])
-    return np.linalg.norm(end_effector(states[:, 0], states[:, 1]) - goal,
-                          axis=-1) <= TASK_GOAL_RADIUS
+    return np.linalg.norm(end_effector(states[:, 0], states[:, 1]) - goal, axis=-1)
+
+
+def in_task_goal(states) -> np.ndarray:
+    """sparse_rrt's goal test on states (N, 4): end effector within 2 of the goal's."""
+    return task_goal_distance(states) <= TASK_GOAL_RADIUS
+
+
+def sample_task_goal(rng: np.random.Generator) -> np.ndarray:
+    """A state in sparse_rrt's goal region: angles near the goal's (rejection sampling over
+    a box that holds the region's part near the upright), velocities uniform in their bounds."""
+    for _ in range(1000):
+        x = np.array([GOAL[0] + rng.uniform(-0.1, 0.1), GOAL[1] + rng.uniform(-0.2, 0.2),
+                      rng.uniform(-VELOCITY_BOUND, VELOCITY_BOUND),
+                      rng.uniform(-VELOCITY_BOUND, VELOCITY_BOUND)])
+        if in_task_goal(x)[0]:
+            return x
+    return np.array(GOAL, dtype=float)
 
 
 if __name__ == "__main__":
@@ -143,5 +165,4 @@ if __name__ == "__main__":
     system = make_acrobot()
     check_system(system)
     print(f"{system.name}: check_system passed; run it with\n  rrtcolearn run --system "
-          "examples.sparse_rrt_acrobot:make_acrobot --set plan.time_limit=60 "
-          f"--set plan.goal_tolerance={GOAL_RADIUS} --set plan.wrap_goal=true")
+          "examples.sparse_rrt_acrobot:make_acrobot")

@@ -77,7 +77,9 @@ def _make(name: str, velocity_scale: float) -> SymbolicSystem:
         description="sparse_rrt cart_pole (I 10, L 2.5, M 10, m 5), |F| <= 300, theta = pi up"
                     + ("" if velocity_scale == 1.0 else
                        f"; velocity bounds x{velocity_scale:g}"),
-        defaults={"start": list(START), "goal": list(GOAL)},
+        # the query as sparse_rrt states it: radius 1.5, plain Euclidean over all coordinates
+        defaults={"start": list(START), "goal": list(GOAL),
+                  "config": {"plan": {"goal_tolerance": GOAL_RADIUS, "time_limit": 60.0}}},
     )
 
 
@@ -97,5 +99,4 @@ if __name__ == "__main__":
     system = make_cartpole()
     check_system(system)
     print(f"{system.name}: check_system passed; run it with\n  rrtcolearn run --system "
-          "examples.sparse_rrt_cartpole:make_cartpole --set plan.time_limit=60 "
-          "--set plan.goal_tolerance=1.5")
+          "examples.sparse_rrt_cartpole:make_cartpole")

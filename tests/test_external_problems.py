@@ -131,12 +131,21 @@ def test_metadata(cartpole, acrobot, cp_mod, ac_mod):
     np.testing.assert_allclose(cartpole.state_low, [-30, -40, 0, -2])
     np.testing.assert_allclose(cartpole.state_high, [30, 40, 2 * np.pi, 2])
     np.testing.assert_allclose(cartpole.input_limits(), [[-300], [300]])
-    assert cartpole.defaults == {"start": [-20.0, 0.0, 3.14, 0.0], "goal": [20.0, 0.0, 3.14, 0.0]}
+    assert cartpole.defaults == {"start": [-20.0, 0.0, 3.14, 0.0], "goal": [20.0, 0.0, 3.14, 0.0],
+                                 "config": {"plan": {"goal_tolerance": 1.5, "time_limit": 60.0}}}
     assert acrobot.angle_dims == (0, 1)
     np.testing.assert_allclose(acrobot.state_low, [-np.pi, -np.pi, -6, -6])
     np.testing.assert_allclose(acrobot.state_high, [np.pi, np.pi, 6, 6])
     np.testing.assert_allclose(acrobot.input_limits(), [[-4], [4]])
-    assert acrobot.defaults == {"start": [0.0, 0.0, 0.0, 0.0], "goal": [3.14, 0.0, 0.0, 0.0]}
+    d = acrobot.defaults
+    assert d["start"] == [0.0, 0.0, 0.0, 0.0] and d["goal"] == [3.14, 0.0, 0.0, 0.0]
+    assert d["config"] == {"plan": {"goal_tolerance": 2.0, "time_limit": 60.0}}
+    # the goal region: sparse_rrt's task-space test, velocities free
+    rng = np.random.default_rng(1)
+    draws = np.array([d["goal_sampler"](rng) for _ in range(200)])
+    assert ac_mod.in_task_goal(draws).all() and np.ptp(draws[:, 2]) > 6
+    assert d["goal_fn"](np.array([d["goal"]]))[0] == 0.0
+    assert d["goal_fn"](np.array([d["start"]]))[0] > 2.0
     for system in (cartpole, acrobot):  # R = identity
         assert system.derivation.input_weight == sympy.eye(1)
     wide = cp_mod.make_cartpole_wide()

@@ -520,7 +520,9 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
     ``u_max`` and ``obstacles`` default to the configuration's (``config`` or the model's);
     ``is_valid(states) -> bool array`` adds a user state validity checker;
     ``goal_fn(states) -> distances`` and ``goal_sampler(rng) -> state`` a user goal region
-    (`PlanningProblem`; reached where the distance is at most ``goal_tolerance``). A model whose
+    (`PlanningProblem`; reached where the distance is at most ``goal_tolerance``); a system
+    whose ``defaults`` hold them plans to that region when ``goal`` is its default goal. A
+    model whose
     system saturates its inputs plans within the limits it learned with (a different
     ``u_max`` needs a model trained for it: ConfigError); a model of the unbounded system
     plans under ``u_max`` by truncation (edges whose input exceeds it are rejected or cut,
@@ -544,6 +546,12 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
                           "only (by truncation); train a model with the limits instead")
     if obstacles is _FROM_CONFIG:
         obstacles = [o.model_dump() for o in cfg.plan.obstacles]
+    defaults = model.system.defaults
+    if goal_fn is None and "goal_fn" in defaults and defaults.get("goal") is not None \
+            and np.array_equal(np.asarray(goal, dtype=float),
+                               np.asarray(defaults["goal"], dtype=float)):
+        # the system's standard query comes with its goal region
+        goal_fn, goal_sampler = defaults["goal_fn"], defaults.get("goal_sampler")
     problem = PlanningProblem.create(model.system, start, goal, goal_tolerance, u_max=u_max,
                                      obstacles=obstacles, is_valid=is_valid,
                                      wrap_goal=cfg.plan.wrap_goal,

@@ -35,7 +35,8 @@ class System:
     hamiltonian : ``(x, lambda, u, w) -> H (N,)``.
     dynamics : ``(x (N,n), u (N,m)) -> x' (N,n)``, the plain dynamics (for planners that
         choose inputs directly, and for independent checks).
-    defaults : default query (``start``, ``goal``) and ``config``, the system's recommended
+    defaults : default query (``start``, ``goal``, optionally its goal region ``goal_fn`` and
+        ``goal_sampler``, see `PlanningProblem`) and ``config``, the system's recommended
         configuration (nested dict, applied under the user's configuration).
     input_scale : (n,) weights of the state coordinates in learning distances (see
         `metric_scale`); None for the box-derived default.
