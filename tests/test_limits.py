@@ -120,6 +120,7 @@ def test_truncation_at_w1_stalls_with_a_diagnosis(tmp_path):
     assert not p.solved and p.extra["stalled"] and p.iterations == 2000
     assert p.nodes == 1 and p.to_dict()["limit_mode"] == "truncate"
     assert "invalid query" in p.extra["diagnosis"] and "saturate" in p.extra["diagnosis"]
+    assert "no progress toward the goal" in p.extra["diagnosis"]  # the tree never left the start
     assert sum(p.extra["outcomes"].values()) == 2000
 
 

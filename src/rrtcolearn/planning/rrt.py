@@ -111,8 +111,11 @@ _ADVICE = {
 }
 
 
-def diagnose(outcomes: dict, stalled: bool, nodes: int, truncating: bool) -> str:
-    """One line: why an unsolved plan stopped and what most often rejected a candidate."""
+def diagnose(outcomes: dict, stalled: bool, nodes: int, truncating: bool,
+             progress: tuple[float, float] | None = None) -> str:
+    """One line: why an unsolved plan stopped, what most often rejected a candidate and, with
+    ``progress`` (the start's and the nearest node's distance to the goal region), how far
+    the tree got toward the goal."""
     failed = {k: v for k, v in outcomes.items() if k != "added" and v}
     total = sum(outcomes.values())
     if not failed:
@@ -128,7 +131,12 @@ def diagnose(outcomes: dict, stalled: bool, nodes: int, truncating: bool) -> str
     advice = _ADVICE[worst]
     if truncating and worst in ("invalid_query", "input_limit"):
         advice += _TRUNCATION_ADVICE
-    return f"{head}; {share:.0%} of {total} iterations: {worst.replace('_', ' ')} — {advice}"
+    line = f"{head}; {share:.0%} of {total} iterations: {worst.replace('_', ' ')} — {advice}"
+    if progress is not None:
+        start, best = progress
+        line += (f"; nearest node {best:.3g} from the goal region (the start: {start:.3g})"
+                 + (": no progress toward the goal" if best >= 0.99 * start else ""))
+    return line
 
 
 # where limits are met by truncating unconstrained extremals, that is the likely cause
@@ -606,5 +614,6 @@ class RRTCoLearn:
                       if connecting or search else {}),
                    "outcomes": outcomes, "stalled": stalled,
                    **({} if goal_node >= 0 else {"diagnosis": diagnose(
-                       outcomes, stalled, tree.n_nodes, prob.u_max is not None)})},
+                       outcomes, stalled, tree.n_nodes, prob.u_max is not None,
+                       (float(prob.goal_distance(prob.start)[0]), float(dist[end])))})},
         )
