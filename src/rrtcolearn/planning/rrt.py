@@ -187,6 +187,20 @@ def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, h
     return float(np.clip(mean + sigma * ndtri(a + (b - a) * rng.random()), lo, hi))
 
 
+def _truncnorm_vec(rng: np.random.Generator, mean: np.ndarray, sigma: float, lo: np.ndarray,
+                   hi: np.ndarray) -> np.ndarray:
+    """`_truncnorm` elementwise; it draws a uniform for each coordinate that needs one, in
+    order, so the draws and the generator's state are those of calling it coordinate by
+    coordinate."""
+    a, b = ndtr((lo - mean) / sigma), ndtr((hi - mean) / sigma)
+    out = np.where(mean < lo, lo, hi)  # the nearest bound, where the mass is negligible
+    draw = b - a >= 1e-12
+    u = rng.random(int(draw.sum()))
+    out[draw] = np.clip(mean[draw] + sigma * ndtri(a[draw] + (b[draw] - a[draw]) * u),
+                        lo[draw], hi[draw])
+    return out
+
+
 class RRTCoLearn:
     """Alg. 1 with the learned J, U, V; needs no local planner.
 
@@ -214,10 +228,18 @@ class RRTCoLearn:
                               "plan.goal_funnel)")
         self._circular = np.zeros(sys.n_params, dtype=bool)
         self._circular[: len(sys.param_circular)] = sys.param_circular
+        # the steering parameters' and the duration's bounds
+        self._bounds = (np.append(sys.param_low, self.settings.dt),
+                        np.append(sys.param_high, self.settings.max_duration))
 
     def _sample_params(self, rng, prediction: np.ndarray, sigma: float) -> np.ndarray:
         sys, s = self.problem.system, self.settings
         k = sys.n_params
+        if not self._circular.any():
+            # every coordinate a truncated normal: one vector of uniforms, the same numbers
+            # (and so the same draws) as the coordinate-by-coordinate loop below
+            return np.round(_truncnorm_vec(rng, prediction[: k + 1], sigma, *self._bounds),
+                            s.decimals)
         out = np.empty(k + 1)
         for j in range(k):
             lo, hi = sys.param_low[j], sys.param_high[j]
