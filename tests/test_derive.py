@@ -20,8 +20,8 @@ def test_pendulum_derivations_reproduce_the_papers_settings(pendulum):
     assert cfg.plan.sigma == math.pi / 4 and cfg.plan.sigma_goal == math.pi / 2
     assert cfg.plan.control_samples == 1 and cfg.plan.extend_distance == 0.0
     assert cfg.learn.learner == "knn"
-    # the median cost at which simulations leave the reach ball: the paper's bound is 2
-    assert 1.8 <= cfg.generate.max_cost <= 2.4
+    # 90% of simulations leave the reach ball below this cost (the paper took 2)
+    assert 3.5 <= cfg.generate.max_cost <= 5.5
     for key in ("generate.max_cost", "plan.sigma", "learn.learner"):
         assert key in cfg.derived and ":" in cfg.derived[key]  # value: reason
 
@@ -45,7 +45,7 @@ def test_four_state_derivations_follow_the_dimension():
     assert cfg.plan.control_samples == 16
     # a uniform target rarely lies within the data's reach in four dimensions
     assert derive.reach_coverage(cartpole, 1.5) < derive.EXTEND_MIN_COVERAGE
-    assert cfg.plan.extend_distance == pytest.approx(1.5 * cartpole.metric_scale.min() / 3)
+    assert cfg.plan.extend_distance == pytest.approx(1.5 * cartpole.metric_scale.mean() / 3)
 
 
 def test_derived_validity_threshold_accepts_held_out_valid_pairs(pendulum, paper_model):
