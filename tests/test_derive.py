@@ -45,7 +45,7 @@ def test_four_state_derivations_follow_the_dimension():
     assert cfg.plan.control_samples == 16
     # a uniform target rarely lies within the data's reach in four dimensions
     assert derive.reach_coverage(cartpole, 1.5) < derive.EXTEND_MIN_COVERAGE
-    assert cfg.plan.extend_distance == pytest.approx(1.5 * cartpole.metric_scale.mean() / 3)
+    assert cfg.plan.extend_distance == pytest.approx(0.5)
 
 
 def test_derived_validity_threshold_accepts_held_out_valid_pairs(pendulum, paper_model):

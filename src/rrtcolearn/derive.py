@@ -25,8 +25,8 @@ the measurements behind them are in docs/derived_settings.md.
   paper's planner), 16 with more.
 - ``plan.extend_distance``: off (the paper's planner) where a uniform target lies within
   the data's reach of a node often enough (>= 10% from the box centre); else a third of the
-  reach in the mean weighted metric, so that random targets stay within the segments the
-  data hold.
+  reach (the 4-state systems' measured 0.5), so that random targets stay within the
+  segments the data hold. Distances are weighted by ``System.metric_scale``, as Alg. 2's.
 """
 
 from __future__ import annotations
@@ -105,25 +105,27 @@ def control_samples(system: System) -> Choice:
 
 
 def reach_coverage(system: System, max_state_distance: float, samples: int = 4096) -> float:
-    """Share of uniform box states within ``max_state_distance`` (raw, the data's reach) of
-    the box centre, angles the short way round; a fixed-seed Monte Carlo estimate."""
+    """Share of uniform box states within ``max_state_distance`` (the data's reach, in the
+    weighted metric Alg. 2 bounds it in) of the box centre, angles the short way round; a
+    fixed-seed Monte Carlo estimate."""
     rng = np.random.default_rng(12345)
     x = rng.uniform(system.state_low, system.state_high, (samples, system.n_states))
     diff = x - 0.5 * (system.state_low + system.state_high)
     angles = list(system.angle_dims)
     if angles:
         diff[:, angles] = np.mod(diff[:, angles] + np.pi, 2.0 * np.pi) - np.pi
+    diff *= system.metric_scale
     return float(np.mean(np.einsum("ij,ij->i", diff, diff) <= max_state_distance**2))
 
 
 def extend_distance(system: System, max_state_distance: float) -> Choice:
-    """Off where random targets often lie within reach, else a third of the reach in the
-    mean weight of the coordinates."""
+    """Off where random targets often lie within reach, else a third of the reach (both in
+    the weighted metric)."""
     share = reach_coverage(system, max_state_distance)
     if share >= EXTEND_MIN_COVERAGE:
         return Choice("plan.extend_distance", 0.0, f"off (the paper's planner): {share:.0%} "
                       "of the box lies within the data's reach of its centre")
-    value = max_state_distance * float(system.metric_scale.mean()) / 3.0
+    value = max_state_distance / 3.0
     return Choice("plan.extend_distance", value, f"a third of the data's reach: only "
                   f"{share:.1%} of the box lies within reach of its centre")
 
