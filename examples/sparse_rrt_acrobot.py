@@ -22,26 +22,21 @@ Limits |tau| <= 4 (saturated optimal control), |theta1'|, |theta2'| <= 6; sampli
 theta1, theta2 in [-pi, pi] (sparse_rrt's wrapping interval) and the velocity bounds;
 R = 1 (identity), default time weight.
 
-The goal is NOT sparse_rrt's. sparse_rrt's goal test is in task space: the end effector
-(x, y) = 20 (cos t1 + cos(t1 + t2), sin t1 + sin(t1 + t2)) within distance 2 of the goal's
-(theta1 = 3.14, theta2 = 0), velocities free. rrtcolearn has no task-space goal region, nor a
-ball over some coordinates only: its goal test is a Euclidean ball over all coordinates (angles
-wrapped with plan.wrap_goal). The closest supported goal used here is the largest such ball
-inside sparse_rrt's region: goal (3.14, 0, 0, 0), radius `GOAL_RADIUS` = 0.0447 with angles
-wrapped (to first order the region is |2 dtheta1 + dtheta2| <= 0.1 about the upright, whose
-inscribed disc has radius 0.1 / sqrt(5) = 0.04472). That ball also asks for the velocities to
-be within 0.0447 of zero: a swing-up that comes to rest upright, far harder than sparse_rrt's
-(which only has to pass the end effector through the region at any speed). Results on this
-goal are not comparable with sparse_rrt's figure; docs/external_problems.md.
+The goal is sparse_rrt's: the end effector (x, y) = 20 (cos t1 + cos(t1 + t2), sin t1 +
+sin(t1 + t2)) within distance 2 of the goal's (theta1 = 3.14, theta2 = 0), velocities free.
+The system's default query carries it as a goal region (`task_goal_distance`, a distance the
+plan's goal tolerance 2 bounds, and `sample_task_goal`, which draws states in the region for
+the goal bias); `GOAL_RADIUS` is the largest state ball inside it (0.0447, angles wrapped), kept
+for comparison.
 
 Other differences: sparse_rrt clamps the velocities after every Euler step, rrtcolearn treats
 the bounds as state constraints (`make_acrobot_wide` widens them by 50% for the sensitivity
-row), and the box is also the data's sampling box (plan.state_low/high not on main yet).
+row). Every learner and planner setting is derived by the library
+(docs/derived_settings.md).
 
 Run it (from the repository root, so that `examples` is importable)::
 
-    rrtcolearn run --system examples.sparse_rrt_acrobot:make_acrobot \\
-        --set plan.time_limit=60 --set plan.goal_tolerance=0.0447 --set plan.wrap_goal=true
+    rrtcolearn run --system examples.sparse_rrt_acrobot:make_acrobot
 """
 
 from __future__ import annotations

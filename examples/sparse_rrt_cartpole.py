@@ -21,14 +21,14 @@ Differences from sparse_rrt that remain (docs/external_problems.md):
   step (a saturation); rrtcolearn treats the box as a state constraint (an edge leaving it is
   invalid), which is stricter. `make_cartpole_wide` widens the velocity bounds by 50% for the
   sensitivity row EXTERNAL.md asks for.
-- sparse_rrt's planner state box and its sampling box are one; here the box is also the
-  data's sampling box (a separate planner constraint, config plan.state_low/high, is not on
-  main yet).
+- sparse_rrt's planner state box and its sampling box are one; here too (the planner's
+  constraints could differ from the data's box through plan.state_low/high).
 
-Run it (from the repository root, so that `examples` is importable)::
+The query (tolerance 1.5, 60 s) is the system's default; every learner and planner setting
+is derived by the library (docs/derived_settings.md). Run it (from the repository root, so
+that `examples` is importable)::
 
-    rrtcolearn run --system examples.sparse_rrt_cartpole:make_cartpole \\
-        --set plan.time_limit=60 --set plan.goal_tolerance=1.5
+    rrtcolearn run --system examples.sparse_rrt_cartpole:make_cartpole
 """
 
 from __future__ import annotations
