@@ -99,3 +99,18 @@ def test_planner_switches_the_goal_connection_on_when_it_stalls(paper_model):
         # until the switch the trees are the same: the connection draws no random numbers
         k = min(p.nodes, q.nodes) - 1
         np.testing.assert_array_equal(p.tree.states[:k], q.tree.states[:k])
+
+
+def test_offline_budget_chooses_simulations_by_convergence(tmp_path):
+    cfg = load_config(overrides=["generate.offline_budget=4", "clean.k_max=300"])
+    data, stats = pipeline.generate(cfg, tmp_path)
+    saved = read_toml(tmp_path / "config.toml")
+    n = saved["generate"]["n_simulations"]
+    assert stats.simulations == n and n % cfg.generate.chunk_size == 0
+    reason = saved["derived"]["generate.n_simulations"]
+    assert "held-out J error by simulations 10000:" in reason
+    assert ("converged" in reason) or ("offline budget 4 s" in reason)
+    # the data are those of a plain run with that many simulations
+    plain = load_config(overrides=[f"generate.n_simulations={n}", "clean.k_max=300"])
+    again, _ = pipeline.generate(plain, tmp_path / "plain")
+    np.testing.assert_array_equal(again.x1, data.x1)

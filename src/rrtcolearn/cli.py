@@ -73,6 +73,9 @@ SetOpt = Annotated[list[str] | None, typer.Option("--set", help="override: secti
 SystemOpt = Annotated[str | None, typer.Option(
     "--system", help="registered system name, or module:attribute of your own")]
 UMaxOpt = Annotated[float | None, typer.Option("--u-max", help="torque limit |u| <= U_MAX")]
+BudgetOpt = Annotated[float | None, typer.Option(
+    "--offline-budget", help="choose the number of simulations by a convergence test on "
+    "held-out J error within this many CPU seconds (generate.offline_budget)")]
 WorkersOpt = Annotated[int | None, typer.Option(
     "--workers", help="local worker processes (results do not depend on it)")]
 SchedulerOpt = Annotated[str | None, typer.Option(
@@ -139,7 +142,8 @@ def _guard(fn):
 
 def _config(config: Path | None, seed: int | None, overrides: list[str] | None,
             run_dir: Path | None = None, u_max: float | None = None,
-            obstacles: list[str] | None = None, system: str | None = None) -> Config:
+            obstacles: list[str] | None = None, system: str | None = None,
+            offline_budget: float | None = None) -> Config:
     base = {}
     if run_dir is not None and (run_dir / "config.toml").is_file():
         base = read_toml(run_dir / "config.toml")
@@ -148,6 +152,8 @@ def _config(config: Path | None, seed: int | None, overrides: list[str] | None,
         overrides.append(f"system.name={json.dumps(system)}")
     if u_max is not None:
         overrides.append(f"system.u_max={u_max!r}")
+    if offline_budget is not None:
+        overrides.append(f"generate.offline_budget={offline_budget!r}")
     cfg = add_obstacles(load_config(config, overrides, base=base), list(obstacles or []))
     if seed is not None:
         if seed < 0:
@@ -272,11 +278,12 @@ def systems() -> None:
 def generate(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
              set_: SetOpt = None, u_max: UMaxOpt = None, workers: WorkersOpt = None,
              scheduler: SchedulerOpt = None, dask_local: DaskLocalOpt = None,
-             system: SystemOpt = None) -> None:
+             system: SystemOpt = None, offline_budget: BudgetOpt = None) -> None:
     """Generate a dataset of optimal trajectory segments (Alg. 2); resumable."""
     def body():
         settings = ExecutionSettings.from_options(workers, scheduler, dask_local)
-        cfg = _config(config, seed, set_, u_max=u_max, system=system)
+        cfg = _config(config, seed, set_, u_max=u_max, system=system,
+                      offline_budget=offline_budget)
         run_dir = _run_dir(out, cfg)
         _print_summary(f"generate -> {run_dir}", _do_generate(cfg, run_dir, settings))
     _guard(body)
@@ -385,11 +392,13 @@ def plan(
 def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         set_: SetOpt = None, u_max: UMaxOpt = None, obstacle: ObstacleOpt = None,
         workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
-        dask_local: DaskLocalOpt = None, system: SystemOpt = None) -> None:
+        dask_local: DaskLocalOpt = None, system: SystemOpt = None,
+        offline_budget: BudgetOpt = None) -> None:
     """The whole pipeline: generate, clean, fit, and plan the configured query."""
     def body():
         settings = ExecutionSettings.from_options(workers, scheduler, dask_local)
-        cfg = _config(config, seed, set_, u_max=u_max, obstacles=obstacle, system=system)
+        cfg = _config(config, seed, set_, u_max=u_max, obstacles=obstacle, system=system,
+                      offline_budget=offline_budget)
         run_dir = _run_dir(out, cfg)
         t0 = time.perf_counter()
         figures = {"run_dir": str(run_dir)}

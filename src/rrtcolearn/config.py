@@ -97,6 +97,10 @@ class GenerateConfig(_Section):
     n_simulations: int | None = Field(
         None, ge=1, description="simulations per epoch (Alg. 2); none: derived from the "
         "state dimension (the paper's 40 000 for two states)")
+    offline_budget: float | None = Field(
+        None, gt=0, description="with n_simulations left to the library: choose it by a "
+        "convergence test on held-out J error (doubling the data until the error improves "
+        "by less than 10%) within this many CPU seconds; none: by the state dimension")
     dt: float = Field(0.01, gt=0, le=1.0, description="RK4 step (s)")
     max_cost: float | None = Field(
         None, gt=0, description="stop a simulation when its cost exceeds this (none: "

@@ -29,6 +29,7 @@ from rrtcolearn.data.clean import CleaningResult, clean_data
 from rrtcolearn.data.dataset import Dataset
 from rrtcolearn.data.generate import (
     GenerationStats,
+    generate_data,
     generation_tasks,
     merge,
     run_generation_task,
@@ -120,7 +121,7 @@ def resolve(config: Config, system: System | None = None) -> Config:
     system = system if system is not None else build_system(config)
     g = config.generate
     choices = []
-    if g.n_simulations is None:
+    if g.n_simulations is None and g.offline_budget is None:
         choices.append(derive.n_simulations(system))
     if g.max_cost is None:
         choices.append(derive.pilot_max_cost(
@@ -178,7 +179,8 @@ def save_config(config: Config, run_dir: Path) -> None:
 def _generation_key(config: Config, system: System) -> str:
     """Digest of everything the raw dataset depends on (not of how it is scheduled)."""
     spec = {"seed": config.seed, "system": config.system.model_dump(mode="json"),
-            "generate": config.generate.model_dump(mode="json"),
+            # how n_simulations was chosen does not change the data it gives
+            "generate": config.generate.model_dump(mode="json", exclude={"offline_budget"}),
             "goal": _data_goal(config, system),
             "box": [system.state_low.tolist(), system.state_high.tolist(),
                     system.param_low.tolist(), system.param_high.tolist()]}
@@ -210,12 +212,19 @@ def generate(config: Config, run_dir: str | Path,
     run_dir = Path(run_dir)
     system = build_system(config)
     config = resolve(config, system)
+    if config.generate.n_simulations is None:  # an offline budget: a convergence test
+        config = converge_simulations(config, run_dir, system)
     key = _generation_key(config, system)
     final = run_dir / DATASET_FILE
     if final.is_file():
         try:
             data, meta = load_dataset(final, system.name)
             if meta.get("generation_key") == key:
+                if meta.get("config", {}).get("derived") != config.derived:
+                    # the same data, chosen for reasons the file should carry on
+                    save_dataset(final, data, _meta(config, system, stats=meta["stats"],
+                                                    generation_key=key))
+                save_config(config, run_dir)
                 if progress is not None:
                     progress(config.generate.n_simulations)
                 # nothing was computed by this call
@@ -255,6 +264,57 @@ def generate(config: Config, run_dir: str | Path,
                                     generation_key=key))
     shards.remove()
     return data, stats
+
+
+CONVERGENCE_GAIN = 0.10  # stop doubling the data when the J error improves by less
+CONVERGENCE_HELD_OUT = 1000  # held-out pairs of the convergence test
+
+
+def converge_simulations(config: Config, run_dir: str | Path,
+                         system: System | None = None) -> Config:
+    """``config`` with ``generate.n_simulations`` chosen by a convergence test within
+    ``generate.offline_budget`` CPU seconds: from a quarter of the dimension's default,
+    double the simulations, generate, clean and fit k-NN J, and measure its median relative
+    error on held-out pairs (simulations from their own seed); stop once doubling improved it
+    by less than `CONVERGENCE_GAIN`, or when the next stage (estimated at 2.2 times the last)
+    would overrun the budget. The last stage's data stay in ``run_dir`` for `generate`."""
+    run_dir = Path(run_dir)
+    system = system if system is not None else build_system(config)
+    budget = float(config.generate.offline_budget)
+    g = config.generate
+    start = derive.n_simulations(system).value // 4
+    n = max(g.chunk_size, -(-start // g.chunk_size) * g.chunk_size)
+    held, _ = generate_data(system, seed_stream(config.seed, "derive"), 2 * CONVERGENCE_HELD_OUT,
+                            time_weight=config.system.time_weight, dt=g.dt,
+                            max_cost=config.max_cost, max_state_distance=g.max_state_distance,
+                            u_max=config.system.truncation_limit, max_duration=g.max_duration)
+    rows = np.random.default_rng(0).permutation(len(held))[: 20 * CONVERGENCE_HELD_OUT]
+    spent, trail, previous = 0.0, [], None
+    knn = config.learn.model_copy(update={"learner": "knn"})
+    while True:
+        t0 = time.process_time()
+        stage = config.model_copy(update={"generate": g.model_copy(update={
+            "n_simulations": n, "offline_budget": None})})
+        _, stats = generate(stage, run_dir)
+        cleaned, _ = clean(stage, run_dir)
+        functions = fit_functions(system, cleaned, stage.model_copy(update={"learn": knn}))
+        cost, _, valid = functions.query(held.inputs[rows])
+        truth = held.cost[rows]
+        ok = valid & (truth > 0)
+        error = float(np.median(np.abs(cost[ok] - truth[ok]) / truth[ok])) if ok.any() \
+            else float("inf")
+        cpu = time.process_time() - t0 + stats.worker_cpu_s
+        spent += cpu
+        trail.append(f"{n}: {error:.1%}")
+        if previous is not None and error > (1.0 - CONVERGENCE_GAIN) * previous:
+            why = "converged: doubling improved held-out J error by less than 10%"
+            break
+        if spent + 2.2 * cpu > budget:
+            why = f"offline budget {budget:g} s CPU: the next doubling would overrun it"
+            break
+        previous, n = error, 2 * n
+    reason = f"{why} (held-out J error by simulations {', '.join(trail)}; {spent:.0f} s CPU)"
+    return _record(config, [derive.Choice("generate.n_simulations", n, reason)])
 
 
 def clean(config: Config, run_dir: str | Path,
