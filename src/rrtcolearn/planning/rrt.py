@@ -280,6 +280,39 @@ class RRTCoLearn:
                 return self._integrate_edge(x0, params, lam, z0)
         return None
 
+    def _draws(self, rng, x0: np.ndarray, prediction: np.ndarray, sigma: float, count: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Up to ``count`` steering draws around ``prediction`` that have a costate, drawn in
+        blocks (parameters and costates vectorised): (parameters (c, k+1), costates (c, n))."""
+        sys, s = self.problem.system, self.settings
+        lo, hi = self._bounds
+        mean = np.broadcast_to(prediction[: lo.size], (2 * count, lo.size))
+        a, b = ndtr((lo - mean) / sigma), ndtr((hi - mean) / sigma)
+        kept_p, kept_l, have = [], [], 0
+        for _ in range(s.max_resample):
+            u = rng.random(mean.shape)
+            p = np.where(b - a < 1e-12, np.where(mean < lo, lo, hi),
+                         np.clip(mean + sigma * ndtri(a + (b - a) * u), lo, hi))
+            p = np.round(p, s.decimals)
+            lam, valid = sys.costate_from_params(np.broadcast_to(x0, (len(p), x0.size)),
+                                                 p[:, :-1], s.time_weight)
+            kept_p.append(p[valid])
+            kept_l.append(lam[valid])
+            have += int(valid.sum())
+            if have >= count:
+                break
+        self._rejected = "no_costate"
+        return np.concatenate(kept_p)[:count], np.concatenate(kept_l)[:count]
+
+    def _within_limit(self, z0: np.ndarray) -> bool:
+        """False (and the outcome noted) when the input at the edge's start already breaks
+        the truncation limit."""
+        u_max = self.problem.u_max
+        if u_max is not None and self.problem.system.input_max_abs_jit(z0) > u_max:
+            self._rejected = "input_limit"
+            return False
+        return True
+
     def _start_edge(self, x0: np.ndarray, params: np.ndarray, lam: np.ndarray,
                     z0: np.ndarray) -> bool:
         """Fill ``lam`` and ``z0`` for an edge from ``x0``; False when the parameters give no
@@ -575,8 +608,18 @@ class RRTCoLearn:
             aim = aims[rows[best]] if aim_images else target
             sigma = s.sigma_goal if to_goal else s.sigma
             edge, best_d2 = None, np.inf
-            for _ in range(s.control_samples):
-                cand = self._edge(rng, x0, prediction, sigma, lam, z0)
+            draws = self._draws(rng, x0, prediction, sigma, s.control_samples) \
+                if s.control_samples > 1 and not self._circular.any() else None
+            for c in range(s.control_samples):
+                if draws is None:  # one draw at a time (the paper's planner)
+                    cand = self._edge(rng, x0, prediction, sigma, lam, z0)
+                elif c >= len(draws[0]):
+                    break
+                else:
+                    lam[:] = draws[1][c]
+                    z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
+                    cand = self._integrate_edge(x0, draws[0][c], lam, z0) \
+                        if self._within_limit(z0) else None
                 if cand is None:
                     continue
                 if s.control_samples == 1 or cand[5]:  # the paper's single draw, or a goal hit
