@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from rrtcolearn.config import Config
+from rrtcolearn.config import paper_config
 from rrtcolearn.data.clean import clean_data
 from rrtcolearn.data.generate import generate_data
 from rrtcolearn.pipeline import FittedModel, fit_functions
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     sizes = [int(v) for v in args.sizes.split(",")]
     system = make("pendulum")
-    cfg = Config()
+    cfg = paper_config()  # the paper's pendulum model: the iteration cost of its planner
     data, _ = generate_data(system, 1, cfg.generate.n_simulations)
     cleaned, _ = clean_data(data, seed=1)
     model = FittedModel(system, cfg, fit_functions(system, cleaned, cfg),

@@ -19,7 +19,7 @@ import numpy as np
 from rrtcolearn.config import Config
 from rrtcolearn.data.clean import clean_data
 from rrtcolearn.data.generate import generate_data
-from rrtcolearn.pipeline import FittedModel, fit_functions, plan
+from rrtcolearn.pipeline import FittedModel, fit_functions, plan, resolve
 from rrtcolearn.systems import make
 
 QUERIES = 10_000
@@ -38,8 +38,8 @@ def peak_mib() -> float:
 
 def main(queries: int = QUERIES) -> dict:
     system = make("pendulum")
-    cfg = Config()
-    data, _ = generate_data(system, 1, cfg.generate.n_simulations)
+    cfg = resolve(Config(), system)  # the library's defaults, derived
+    data, _ = generate_data(system, 1, cfg.generate.n_simulations, max_cost=cfg.max_cost)
     cleaned, _ = clean_data(data, seed=1)
     del data
     model = FittedModel(system, cfg, fit_functions(system, cleaned, cfg),
