@@ -240,7 +240,16 @@ def _plan_summary(p) -> dict:
             "planning_cpu_s": round(p.planning_cpu_s, 4),
             **({"goal_connected": p.extra["connection"] or False}
                if "goal_connected" in p.extra else {}),
-            **({"diagnosis": p.extra["diagnosis"]} if "diagnosis" in p.extra else {})}
+            **({"diagnosis": p.extra["diagnosis"]} if "diagnosis" in p.extra else {}),
+            **({"iterations_spent_on": _outcome_shares(p.extra["outcomes"])}
+               if "outcomes" in p.extra else {})}
+
+
+def _outcome_shares(outcomes: dict) -> str:
+    """What the iterations came to, largest share first (what limited a slow plan)."""
+    total = sum(outcomes.values()) or 1
+    parts = sorted(((v, k) for k, v in outcomes.items() if v), reverse=True)
+    return ", ".join(f"{k.replace('_', ' ')} {v / total:.0%}" for v, k in parts)
 
 
 def _print_summary(title: str, figures: dict) -> None:
