@@ -152,7 +152,8 @@ def pilot_max_cost(system: System, *, time_weight: float, dt: float,
         c[left] = costs[np.flatnonzero(left), lengths[left] - 1]
         exit_cost.append(c)
     c = np.concatenate(exit_cost) if exit_cost else np.array([np.inf])
-    value = float(np.quantile(c, COST_QUANTILE))
+    with np.errstate(invalid="ignore"):  # between two infinite costs: nan, the fallback
+        value = float(np.quantile(c, COST_QUANTILE))
     fallback = 2.0 * max(1.0, time_weight)
     if not math.isfinite(value) or value <= 0:
         return Choice("generate.max_cost", fallback, f"the paper's 2 max(1, w): fewer than "

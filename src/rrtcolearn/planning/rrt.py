@@ -294,8 +294,9 @@ class RRTCoLearn:
             p = np.where(b - a < 1e-12, np.where(mean < lo, lo, hi),
                          np.clip(mean + sigma * ndtri(a + (b - a) * u), lo, hi))
             p = np.round(p, s.decimals)
-            lam, valid = sys.costate_from_params(np.broadcast_to(x0, (len(p), x0.size)),
-                                                 p[:, :-1], s.time_weight)
+            with np.errstate(invalid="ignore"):  # rows without a costate are NaN
+                lam, valid = sys.costate_from_params(
+                    np.broadcast_to(x0, (len(p), x0.size)), p[:, :-1], s.time_weight)
             kept_p.append(p[valid])
             kept_l.append(lam[valid])
             have += int(valid.sum())
