@@ -61,10 +61,12 @@ ROWS = {
     "trunc-u1-w0.1": (1.0, 0.1, "truncate", {}),
     "ompl-rrt-u1": (1.0, 1.0, None, {}),
 }
-MAKE_BENCH_ROWS = [r for r in ROWS if r != "sat-u1-w10-mc2"]
+# the w = 10 rows (a scaling check of the cost bound) run in `make bench-limits` only: with
+# derived settings make bench took 6 min with them
+MAKE_BENCH_ROWS = [r for r in ROWS if r not in ("sat-u1-w10-mc2", "sat-u1-w10")]
 # `make bench` runs them in two processes beside its other parts, about equal in CPU (the
 # saturated rows' cleaning is most of it); the ratio's two rows share one, interleaved
-MAKE_BENCH_GROUPS = (["unbounded", "sat-u1-w1", "sat-u1-w10", "trunc-u1-w0.1", "ompl-rrt-u1"],
+MAKE_BENCH_GROUPS = (["unbounded", "sat-u1-w1", "trunc-u1-w0.1", "ompl-rrt-u1"],
                      ["sat-u0.5-w1", "sat-u1-w0.1", "trunc-u1-w1"])
 assert sorted(r for g in MAKE_BENCH_GROUPS for r in g) == sorted(MAKE_BENCH_ROWS)
 # the issue's targets: the saturated u_max = 1, w = 1 row plans within 1.5x the unbounded

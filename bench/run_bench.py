@@ -32,7 +32,7 @@ REPEATS = 3
 QUERIES = 100
 # a shortened soak keeps `make bench` within its 5 minutes on a slow machine (66 ms CPU per
 # query there); `python bench/soak.py` runs the full 10 000
-SOAK_QUERIES = 1000
+SOAK_QUERIES = 500
 # a box across the direct swing (theta, omega): the plan must pass above or below it
 BLOCKING_BOX = {"type": "box", "low": [-2.0, 0.3], "high": [-1.2, 2.5]}
 
