@@ -30,6 +30,7 @@ from rrtcolearn.systems import make
 
 REPEATS = 3
 QUERIES = 100
+LIMIT_QUERIES = 50
 # a shortened soak keeps `make bench` within its 5 minutes on a slow machine (66 ms CPU per
 # query there); `python bench/soak.py` runs the full 10 000
 SOAK_QUERIES = 500
@@ -90,12 +91,14 @@ def main() -> None:
     if "--skip-limits" not in sys.argv:
         import limits_bench
 
-        # the torque-limit table (a model per row, 100 queries each) replaces the
-        # truncation-only u1/u2 rows this bench had; two processes, each a share of the rows
-        # (their stderr is the per-row progress)
+        # the torque-limit table (a model per row) replaces the truncation-only u1/u2 rows
+        # this bench had; two processes, each a share of the rows (their stderr is the
+        # per-row progress); LIMIT_QUERIES per row keeps make bench within 5 minutes
+        # (`make bench-limits`: 100 per row)
         limits = [subprocess.Popen(
             [sys.executable, str(Path(__file__).with_name("limits_bench.py")), "--queries",
-             str(QUERIES), "--rows", ",".join(group)], stdout=subprocess.PIPE, text=True)
+             str(LIMIT_QUERIES), "--rows", ",".join(group)], stdout=subprocess.PIPE,
+            text=True)
             for group in limits_bench.MAKE_BENCH_GROUPS]
     system = make("pendulum")
     cfg = resolve(Config(), system)  # the library's defaults, derived for the pendulum
