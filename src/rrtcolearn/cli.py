@@ -294,7 +294,9 @@ def generate(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         cfg = _config(config, seed, set_, u_max=u_max, system=system,
                       offline_budget=offline_budget)
         run_dir = _run_dir(out, cfg)
-        _print_summary(f"generate -> {run_dir}", _do_generate(cfg, run_dir, settings))
+        figures = _do_generate(cfg, run_dir, settings)
+        _print_derived(pipeline.read_run_config(run_dir))
+        _print_summary(f"generate -> {run_dir}", figures)
     _guard(body)
 
 

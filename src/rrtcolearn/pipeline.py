@@ -172,6 +172,13 @@ def _meta(config: Config, system: System, **extra) -> dict:
     return {"system": system.name, "config": config.model_dump(mode="json"), **extra}
 
 
+def read_run_config(run_dir: str | Path) -> Config:
+    """The resolved configuration a run directory's last step wrote (``config.toml``)."""
+    from rrtcolearn.config import validate
+
+    return validate(read_toml(Path(run_dir) / "config.toml"))
+
+
 def save_config(config: Config, run_dir: Path) -> None:
     atomic_write_text(Path(run_dir) / "config.toml", to_toml(config))
 
