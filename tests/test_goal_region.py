@@ -79,3 +79,18 @@ def test_default_goal_draws_nothing(pendulum):
     rng = np.random.default_rng(0)
     state = rng.bit_generator.state
     assert prob.sample_goal(rng) is prob.goal and rng.bit_generator.state == state
+
+
+def test_funnel_of_a_goal_region_keeps_states_near_the_goal(paper_model):
+    # a region's tolerance is in its own units: the funnel must not drop the states within
+    # that plain distance of the goal state (here all of them would go)
+    from rrtcolearn.planning.rrt import RRTCoLearn
+
+    def goal_fn(x):
+        return 10.0 * np.abs(np.mod(x[:, 0] + np.pi, 2 * np.pi) - np.pi)
+
+    prob = PlanningProblem.create(paper_model.system, [-np.pi, 0], [0, 0], 5.0, goal_fn=goal_fn)
+    planner = RRTCoLearn(prob, paper_model.functions, paper_model.planner_settings())
+    search = planner._build_funnel(np.random.default_rng(0), np.ones(2), 300)
+    near = np.linalg.norm(search.funnel.offsets, axis=1) < 5.0
+    assert near.any()

@@ -476,8 +476,11 @@ class RRTCoLearn:
             sys, prob.goal, prob.goal_offset, rng, n_simulations=n_simulations,
             time_weight=s.time_weight, dt=s.dt, max_duration=s.funnel_duration,
             max_cost=s.funnel_max_cost, scale=weight,
-            tolerance=prob.goal_tolerance, min_duration=s.funnel_min_duration,
-            box=(prob.state_low, prob.state_high))
+            # the funnel drops its states within this plain distance of the goal; a goal
+            # region's tolerance is in its own units, so there every state is kept
+            tolerance=prob.goal_tolerance if prob.goal_fn is None and
+            prob.goal_weights is None else 0.0,
+            min_duration=s.funnel_min_duration, box=(prob.state_low, prob.state_high))
         return _FunnelSearch(funnel, np.full((256, _FUNNEL_POINTS), np.inf),
                              np.zeros((256, _FUNNEL_POINTS), int), np.zeros(256, bool))
 
