@@ -9,10 +9,12 @@ pole mass m_p = 1 kg, pole length l = 0.5 m, g = 9.81 m/s^2. With D = m_c + m_p 
     theta'' = (-f cos(theta) - m_p l theta'^2 cos(theta) sin(theta)
                - (m_c + m_p) g sin(theta)) / (l D)
 
-which is input-affine in f. The running cost is w + R f^2 / 2 with R = 0.01 (our choice, not
-Tedrake's: with R = 1 the optimal segments are too weak to swing the pole over; see the
-README). Standard swing-up query: from hanging at the origin (0, 0, 0, 0) to
-upright at the cart's origin (0, pi, 0, 0).
+which is input-affine in f. The running cost is w + R f^2 / 2 with R = 1 (identity). It shipped
+with R = 0.01 while Alg. 2's cost bound was the paper's 2, which left R = 1 segments too weak
+to swing the pole over; the derived cost bound scales with R (4352 here against 43.6 at
+R = 0.01), and with R = 1 20 of 20 seeded swing-ups are solved within 60 s (README). Standard
+swing-up query: from hanging at the origin (0, 0, 0, 0) to upright at the cart's origin
+(0, pi, 0, 0).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ def make_cartpole() -> SymbolicSystem:
     input_matrix = [[0], [0], [1 / d], [-sympy.cos(th) / (ell * d)]]
     return build_system(
         "cartpole", states=[p, th, dp, dth], inputs=[f], drift=drift,
-        input_matrix=input_matrix, input_weight=[[0.01]],
+        input_matrix=input_matrix, input_weight=[[1.0]],
         parameters={mc: 10.0, mp: 1.0, ell: 0.5, g: 9.81},
         state_low=[-2.0, -math.pi / 2, -4.0, -10.0],
         state_high=[2.0, 3 * math.pi / 2, 4.0, 10.0],
