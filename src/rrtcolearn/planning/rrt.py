@@ -187,6 +187,12 @@ def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, h
     return float(np.clip(mean + sigma * ndtri(a + (b - a) * rng.random()), lo, hi))
 
 
+def _truncnorm_inverse(u, mean, sigma: float, lo, hi, a, b):
+    """N(mean, sigma) truncated to [lo, hi] at uniforms ``u``, where a and b are the CDF at the
+    bounds (elementwise)."""
+    return np.clip(mean + sigma * ndtri(a + (b - a) * u), lo, hi)
+
+
 def _truncnorm_vec(rng: np.random.Generator, mean: np.ndarray, sigma: float, lo: np.ndarray,
                    hi: np.ndarray) -> np.ndarray:
     """`_truncnorm` elementwise; it draws a uniform for each coordinate that needs one, in
@@ -196,8 +202,7 @@ def _truncnorm_vec(rng: np.random.Generator, mean: np.ndarray, sigma: float, lo:
     out = np.where(mean < lo, lo, hi)  # the nearest bound, where the mass is negligible
     draw = b - a >= 1e-12
     u = rng.random(int(draw.sum()))
-    out[draw] = np.clip(mean[draw] + sigma * ndtri(a[draw] + (b[draw] - a[draw]) * u),
-                        lo[draw], hi[draw])
+    out[draw] = _truncnorm_inverse(u, mean[draw], sigma, lo[draw], hi[draw], a[draw], b[draw])
     return out
 
 
@@ -292,7 +297,7 @@ class RRTCoLearn:
         for _ in range(s.max_resample):
             u = rng.random(mean.shape)
             p = np.where(b - a < 1e-12, np.where(mean < lo, lo, hi),
-                         np.clip(mean + sigma * ndtri(a + (b - a) * u), lo, hi))
+                         _truncnorm_inverse(u, mean, sigma, lo, hi, a, b))
             p = np.round(p, s.decimals)
             with np.errstate(invalid="ignore"):  # rows without a costate are NaN
                 lam, valid = sys.costate_from_params(
@@ -318,16 +323,13 @@ class RRTCoLearn:
                     z0: np.ndarray) -> bool:
         """Fill ``lam`` and ``z0`` for an edge from ``x0``; False when the parameters give no
         costate or an input beyond the limit at the start."""
-        sys, s, u_max = self.problem.system, self.settings, self.problem.u_max
+        sys, s = self.problem.system, self.settings
         n = sys.n_states
         z0[:n], z0[2 * n] = x0, 0.0
         if not sys.costate_from_params_jit(x0, params[:-1], s.time_weight, lam):
             return False
         z0[n : 2 * n] = lam
-        if u_max is not None and sys.input_max_abs_jit(z0) > u_max:
-            self._rejected = "input_limit"
-            return False
-        return True
+        return self._within_limit(z0)
 
     def _integrate_edge(self, x0: np.ndarray, params: np.ndarray, lam: np.ndarray,
                         z0: np.ndarray):
