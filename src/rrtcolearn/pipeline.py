@@ -406,14 +406,8 @@ def fit_functions(system: System, data: Dataset, config: Config, *,
                   train_networks: bool = True) -> LearnedFunctions:
     """Fit J, U and V on a (cleaned) dataset with the configured learner parameters
     (with ``learn.learner = "mlp"`` and ``train_networks``, also the J and U networks)."""
-    if config.learn.validity_threshold is None or config.learn.learner is None:
-        config = _record(config, _learn_choices(system, data, config))
+    config = _record(config, _learn_choices(system, data, config))
     learn = config.learn
-    if learn.cost_lower >= learn.cost_upper:
-        raise ConfigError("config: learn.cost_lower must be below learn.cost_upper")
-    if len(data) < learn.n_neighbors:
-        raise ArtefactError(f"the cleaned dataset has {len(data)} points, fewer than "
-                            f"learn.n_neighbors = {learn.n_neighbors}")
     functions = LearnedFunctions.fit(
         data.inputs, data.cost, np.hstack([data.params, data.duration[:, None]]),
         n_neighbors=learn.n_neighbors, cost_bounds=(learn.cost_lower, learn.cost_upper),
@@ -433,13 +427,16 @@ def fit_functions(system: System, data: Dataset, config: Config, *,
 
 
 def _learn_choices(system: System, data: Dataset, config: Config) -> list[derive.Choice]:
-    """The learner settings ``config`` leaves open, derived from the system and the data."""
+    """The learner settings ``config`` leaves open, derived from the system and the data
+    (none when all are set), after checking that the data and bounds can be learned from."""
     learn = config.learn
+    if learn.cost_lower >= learn.cost_upper:
+        raise ConfigError("config: learn.cost_lower must be below learn.cost_upper")
+    if len(data) < learn.n_neighbors:
+        raise ArtefactError(f"the cleaned dataset has {len(data)} points, fewer than "
+                            f"learn.n_neighbors = {learn.n_neighbors}")
     choices = [] if learn.learner is not None else [derive.learner(system)]
     if learn.validity_threshold is None:
-        if len(data) < learn.n_neighbors:
-            raise ArtefactError(f"the cleaned dataset has {len(data)} points, fewer than "
-                                f"learn.n_neighbors = {learn.n_neighbors}")
         try:
             choices.append(derive.validity_threshold(
                 data.inputs, data.simulation, system.metric_scale, learn.n_neighbors,
