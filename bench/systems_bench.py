@@ -39,7 +39,7 @@ import time
 
 import numpy as np
 
-from rrtcolearn import pipeline
+from rrtcolearn import evaluate, pipeline
 from rrtcolearn.config import load_config
 from rrtcolearn.data.generate import generate_data
 from rrtcolearn.evaluate import held_out_errors
@@ -69,20 +69,11 @@ RESIM_TOLERANCE = 1e-6
 
 
 def resimulate(system, plan) -> tuple[float, float, float]:
-    """Re-integrate every path edge of ``plan`` from its start node and costate with
-    ``system.rollout_jit``: (largest distance between an edge's end and the next node, largest
-    |u| along the path, largest |cost difference| of an edge)."""
-    n = system.n_states
-    gap = u_abs = cost_gap = 0.0
-    for e in plan.edges():
-        steps = round(e["duration"] / plan.dt)
-        z0 = np.concatenate([e["from"], e["costate"], [0.0]])
-        traj = system.rollout_jit(z0, float(plan.time_weight), float(plan.dt), steps)
-        gap = max(gap, float(np.linalg.norm(traj[-1, :n] - np.asarray(e["to"]))))
-        cost_gap = max(cost_gap, abs(float(traj[-1, 2 * n]) - e["cost"]))
-        u = system.optimal_control(traj[:, :n], traj[:, n : 2 * n])
-        u_abs = max(u_abs, float(np.abs(u).max()))
-    return gap, u_abs, cost_gap
+    """Re-integrate every path edge of ``plan`` from its start node (`evaluate.resimulate`):
+    (largest distance between an edge's end and the next node, largest |u| along the path,
+    largest |cost difference| of an edge)."""
+    r = evaluate.resimulate(system, plan)
+    return r["max_gap"], r["max_abs_u"], r["max_cost_gap"]
 
 
 def bench_system(name: str, queries: int, time_limit: float | None,

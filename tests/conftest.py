@@ -51,3 +51,20 @@ def rk4_numpy(z0: np.ndarray, w: float, dt: float, steps: int,
         z = z + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         out.append(z.copy())
     return np.array(out)
+
+
+def pendulum_edge(e: dict, w: float, dt: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """An edge of a pendulum plan file re-simulated independently: states (k+1, 2), inputs
+    (k+1,) and cost. An extremal edge runs Eqs. 6-7 from its costate (u = -lambda_omega); a
+    control edge holds its input u in theta'' = sin(theta) + u, at cost rate w + u^2/2."""
+    steps = round(e["duration"] / dt)
+    if e.get("control") is None:
+        traj = rk4_numpy(np.r_[e["from"], e["costate"], 0.0], w, dt, steps)
+        return traj[:, :2], -traj[:, 3], float(traj[-1, 4])
+    u = float(e["control"][0])
+
+    def rhs(z, w):
+        return np.array([z[1], np.sin(z[0]) + u, w + 0.5 * u * u])
+
+    traj = rk4_numpy(np.r_[e["from"], 0.0], w, dt, steps, rhs=rhs)
+    return traj[:, :2], np.full(steps + 1, u), float(traj[-1, 2])

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from tests.conftest import rk4_numpy
+from tests.conftest import pendulum_edge, rk4_numpy
 from tests.test_planner import check_plan_file
 
 from rrtcolearn.config import load_config
@@ -15,13 +15,13 @@ BLOCK = {"type": "box", "low": [-2.0, 0.3], "high": [-1.2, 2.5]}
 
 
 def resimulated_states(d: dict) -> tuple[np.ndarray, np.ndarray]:
-    """States and inputs u = -lambda_omega at every RK4 step of the plan's path."""
+    """States and inputs (u = -lambda_omega, or a control edge's input) at every RK4 step of
+    the plan's path."""
     xs, us = [], []
     for e in d["path"]:
-        steps = round(e["duration"] / d["dt"])
-        traj = rk4_numpy(np.r_[e["from"], e["costate"], 0.0], d["time_weight"], d["dt"], steps)
-        xs.append(traj[:, :2])
-        us.append(-traj[:, 3])
+        states, u, _ = pendulum_edge(e, d["time_weight"], d["dt"])
+        xs.append(states)
+        us.append(u)
     return np.vstack(xs), np.concatenate(us)
 
 

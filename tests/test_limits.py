@@ -9,10 +9,13 @@ import json
 import numpy as np
 import pytest
 import sympy
+from tests.test_constraints import resimulated_states
+from tests.test_planner import check_plan_file
 
 from rrtcolearn import pipeline, systems
 from rrtcolearn.config import load_config
 from rrtcolearn.errors import ConfigError
+from rrtcolearn.planning.rrt import CONTROLS_AFTER
 
 U_MAX = 1.0
 
@@ -108,10 +111,11 @@ def test_saturated_model_refuses_another_limit(saturated_pendulum):
 
 def test_truncation_at_w1_stalls_with_a_diagnosis(tmp_path):
     """The old approach: unconstrained extremals from rest break |u| <= 1 at once when w = 1,
-    so the data have nothing near the start; the planner says so and stops early."""
+    so the data have nothing near the start; the paper's planner (learned steering only)
+    says so and stops early. With random-control edges (the default) the same model plans."""
     cfg = load_config(overrides=[f"system.u_max={U_MAX}", "system.limit_mode='truncate'",
                                  "generate.n_simulations=4000", "clean.k_max=300",
-                                 "plan.stall_iterations=2000"])
+                                 "plan.stall_iterations=2000", "plan.control_edges=false"])
     pipeline.generate(cfg, tmp_path)
     pipeline.clean(cfg, tmp_path)
     model = pipeline.fit(cfg, tmp_path)
@@ -122,6 +126,16 @@ def test_truncation_at_w1_stalls_with_a_diagnosis(tmp_path):
     assert "invalid query" in p.extra["diagnosis"] and "saturate" in p.extra["diagnosis"]
     assert "no progress toward the goal" in p.extra["diagnosis"]  # the tree never left the start
     assert sum(p.extra["outcomes"].values()) == 2000
+    # the default planner switches random-control edges on when the learned steering stalls
+    q = pipeline.plan(model, [-np.pi, 0.0], [0.0, 0.0], 0.1, seed=0, time_limit=60.0,
+                      config=cfg.model_copy(update={"plan": cfg.plan.model_copy(
+                          update={"control_edges": None})}))
+    assert q.solved and q.extra["connections_switched_on"]["controls"] == CONTROLS_AFTER
+    d = q.to_dict()
+    check_plan_file(d)
+    assert any(e["control"] is not None for e in d["path"])
+    _, u = resimulated_states(d)
+    assert np.abs(u).max() <= U_MAX + 1e-12
 
 
 @pytest.mark.parametrize("overrides, match", [

@@ -243,6 +243,13 @@ class PlanConfig(_Section):
     funnel_min_duration: float = Field(
         0.0, ge=0, le=100, description="funnel states less than this time (s) from the goal "
         "are dropped (where the boundary value problem from near them is ill-conditioned)")
+    control_edges: bool | None = Field(
+        None, description="random-control expansion (OMPL's and sparse_rrt's: an input "
+        "uniform in the input box held for a random time) for a system with input limits: "
+        "true: ordinary targets are expanded by it and goal targets by the learned steering "
+        "while a node lies within the data's reach of them; false: the paper's planner "
+        "(learned steering only); none: switched on once the learned steering stalls (100 "
+        "iterations without a node nearer the goal)")
     stall_iterations: int = Field(
         10_000, ge=0, description="stop early when this many iterations in a row added no "
         "node, with a diagnosis of what rejected them (0: never)")
@@ -321,7 +328,8 @@ PAPER: dict[str, dict[str, Any]] = {
     "generate": {"n_simulations": 40_000, "max_cost": 2.0},
     "learn": {"validity_threshold": 0.5, "learner": "knn"},
     "plan": {"sigma": math.pi / 4, "sigma_goal": math.pi / 2, "control_samples": 1,
-             "extend_distance": 0.0, "goal_connect": False, "goal_funnel": 0},
+             "extend_distance": 0.0, "goal_connect": False, "goal_funnel": 0,
+             "control_edges": False},
 }
 
 

@@ -100,13 +100,43 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max, scale=
             lengths[i] = s + 1
             z[:] = znew
     return states, costs, lengths, nonfinite
+
+
+@_numba.njit(cache=True)
+def propagate_jit(x0, u, dt, n_steps):
+    # RK4 of x' = f(x, u) under the constant input u: states (n_steps + 1, n)
+    n = x0.shape[0]
+    traj = _np.empty((n_steps + 1, n))
+    traj[0] = x0
+    k1 = _np.empty(n)
+    k2 = _np.empty(n)
+    k3 = _np.empty(n)
+    k4 = _np.empty(n)
+    tmp = _np.empty(n)
+    for s in range(n_steps):
+        x = traj[s]
+        dynamics_jit(x, u, k1)
+        for i in range(n):
+            tmp[i] = x[i] + 0.5 * dt * k1[i]
+        dynamics_jit(tmp, u, k2)
+        for i in range(n):
+            tmp[i] = x[i] + 0.5 * dt * k2[i]
+        dynamics_jit(tmp, u, k3)
+        for i in range(n):
+            tmp[i] = x[i] + dt * k3[i]
+        dynamics_jit(tmp, u, k4)
+        for i in range(n):
+            traj[s + 1, i] = x[i] + dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+    return traj
 '''
 
 
 def define_kernels(namespace: dict) -> None:
-    """Compile ``rollout_jit`` and ``rollout_batch_jit`` into a system module's namespace.
+    """Compile ``rollout_jit``, ``rollout_batch_jit`` and ``propagate_jit`` into a system
+    module's namespace.
 
-    The module must define compiled ``rhs(z, w, out)`` and ``input_max_abs(z)`` first.
+    The module must define compiled ``rhs(z, w, out)``, ``input_max_abs(z)`` and
+    ``dynamics_jit(x, u, out)`` first.
     """
     exec(compile(_KERNELS, namespace["__file__"], "exec"), namespace)
 
@@ -115,6 +145,15 @@ def rollout(system, z0: np.ndarray, w: float, dt: float, n_steps: int) -> np.nda
     """Integrate one ``z0`` (2n+1,) for ``n_steps`` RK4 steps; returns (n_steps+1, 2n+1)."""
     return system.rollout_jit(np.ascontiguousarray(z0, dtype=np.float64), float(w), float(dt),
                               int(n_steps))
+
+
+def propagate(system, x0: np.ndarray, u: np.ndarray, dt: float, n_steps: int) -> np.ndarray:
+    """RK4 of the plain dynamics from ``x0`` (n,) under the constant input ``u`` (m,) for
+    ``n_steps`` steps of ``dt``: states (n_steps+1, n). Piecewise-constant controls (random
+    control edges, peers' paths) are integrated with this one function."""
+    return system.propagate_jit(np.ascontiguousarray(x0, dtype=np.float64),
+                                np.ascontiguousarray(u, dtype=np.float64), float(dt),
+                                int(n_steps))
 
 
 def rollout_batch(

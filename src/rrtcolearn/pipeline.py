@@ -399,7 +399,7 @@ class FittedModel:
             goal_funnel=p.goal_funnel, funnel_radius=p.funnel_radius,
             funnel_duration=p.funnel_duration, funnel_min_duration=p.funnel_min_duration,
             funnel_max_cost=self.config.max_cost,
-            stall_iterations=p.stall_iterations)
+            stall_iterations=p.stall_iterations, control_edges=p.control_edges)
 
 
 def fit_functions(system: System, data: Dataset, config: Config, *,

@@ -99,20 +99,17 @@ def _rrtcolearn_row(task: RunTask, seed: int) -> dict:
 
 def resimulate_plan(model: pipeline.FittedModel, plan) -> dict:
     """Re-integrate the path edge by edge from the start (not from the stored edge ends)."""
-    from rrtcolearn.integrate import rollout
+    from rrtcolearn.evaluate import edge_trajectory
 
-    sys = model.system
-    n = sys.n_states
     x = plan.start.copy()
     cost = duration = max_u = 0.0
     for e in plan.edges():
-        steps = round(e["duration"] / plan.dt)
-        traj = rollout(sys, np.r_[x, e["costate"], 0.0], plan.time_weight, plan.dt, steps)
-        u = sys.optimal_control(traj[:, :n], traj[:, n: 2 * n])
-        max_u = max(max_u, float(np.abs(u).max()))
-        cost += float(traj[-1, -1])
-        duration += steps * plan.dt
-        x = traj[-1, :n]
+        states, inputs, c = edge_trajectory(model.system, {**e, "from": x}, plan.time_weight,
+                                            plan.dt)
+        max_u = max(max_u, float(np.abs(inputs).max()))
+        cost += c
+        duration += (len(states) - 1) * plan.dt
+        x = states[-1]
     gap = float(np.linalg.norm(x - plan.goal))
     return {"path_cost": cost, "path_duration": duration, "max_abs_u": max_u,
             "final_goal_distance": gap,

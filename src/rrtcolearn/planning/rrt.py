@@ -9,7 +9,7 @@ import numpy as np
 from scipy.special import ndtr, ndtri
 
 from rrtcolearn.errors import ConfigError
-from rrtcolearn.integrate import rollout
+from rrtcolearn.integrate import propagate, rollout
 from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.planning.funnel import GoalFunnel
 from rrtcolearn.planning.nearest import NodeIndex
@@ -60,6 +60,13 @@ class PlannerSettings:
     funnel_min_duration : funnel states less than this time from the goal are dropped.
     stall_iterations : stop when this many iterations in a row added no node (0: never); the
         plan then says what rejected the candidates (`diagnose`).
+    control_edges : random-control expansion (`_control_edge`), for systems with an input
+        box (limits or a truncation bound): ordinary targets are expanded by a random input
+        from their nearest node, goal targets by the learned steering while a node lies
+        within ``connect_reach`` of them, and any learned iteration that adds no edge falls
+        back to a random input. False: the paper's planner. None (auto): switched on once
+        the learned steering stalls (`CONTROLS_AFTER` iterations in a row without a node
+        nearer the goal).
     """
 
     time_weight: float = 1.0
@@ -85,6 +92,7 @@ class PlannerSettings:
     funnel_min_duration: float = 0.0
     funnel_max_cost: float = np.inf
     stall_iterations: int = 10_000
+    control_edges: bool | None = False
 
 
 # what became of an iteration: no node within reach of the target, V rejected every
@@ -148,6 +156,7 @@ _TRUNCATION_ADVICE = (" (with limit_mode 'truncate', extremals that break the li
 # nodes once this many goal-biased iterations in a row brought no node nearer the goal, and
 # a funnel of AUTO_FUNNEL extremals once shooting has failed from FUNNEL_AFTER nodes
 CONNECT_AFTER = 50
+CONTROLS_AFTER = 100
 FUNNEL_AFTER = 20
 AUTO_FUNNEL = 20_000
 
@@ -236,6 +245,14 @@ class RRTCoLearn:
         # the steering parameters' and the duration's bounds
         self._bounds = (np.append(sys.param_low, self.settings.dt),
                         np.append(sys.param_high, self.settings.max_duration))
+        # the box random-control edges draw their inputs from: the system's input limits, or
+        # the truncation bound; none without limits (then learned steering only)
+        self._control_box = None
+        if sys.input_limited and np.isfinite(sys.input_limits()).all():
+            self._control_box = sys.input_limits()
+        elif problem.u_max is not None:
+            self._control_box = (np.full(sys.n_inputs, -problem.u_max),
+                                 np.full(sys.n_inputs, problem.u_max))
 
     def _sample_params(self, rng, prediction: np.ndarray, sigma: float) -> np.ndarray:
         sys, s = self.problem.system, self.settings
@@ -357,11 +374,7 @@ class RRTCoLearn:
             over = np.flatnonzero(u_all[1:] > u_max)
             if over.size:
                 end = min(end, int(over[0]))
-        if prob.goal_fn is None:
-            gd = prob.goal_residual(path[:end])
-            hit = np.flatnonzero(np.einsum("ij,ij->i", gd, gd) <= prob.goal_tolerance**2)
-        else:
-            hit = np.flatnonzero(prob.goal_distance(path[:end]) <= prob.goal_tolerance)
+        hit = self._goal_hits(path[:end])
         if hit.size:
             end = int(hit[0]) + 1
         if end == 0:
@@ -486,6 +499,145 @@ class RRTCoLearn:
         return _FunnelSearch(funnel, np.full((256, _FUNNEL_POINTS), np.inf),
                              np.zeros((256, _FUNNEL_POINTS), int), np.zeros(256, bool))
 
+    def _within_reach(self, states: np.ndarray, target: np.ndarray, weight: np.ndarray,
+                      wrapped: NodeIndex) -> bool:
+        """Whether the tree node nearest ``target`` (weighted, angles modulo a turn) lies
+        within the data's reach of it, where U has seen segments that long."""
+        i = int(wrapped.nearest(target, 1)[0])
+        diff = target - states[i]
+        angles = list(self.problem.system.angle_dims)
+        if angles:
+            diff[angles] = np.mod(diff[angles] + np.pi, 2.0 * np.pi) - np.pi
+        wd = diff * weight
+        return float(np.sqrt(wd @ wd)) <= self.settings.connect_reach
+
+    def _learned_iteration(self, rng, states: np.ndarray, target: np.ndarray,
+                           to_goal: bool, weight: np.ndarray, plain: NodeIndex,
+                           wrapped: NodeIndex, shifts: np.ndarray, lam: np.ndarray,
+                           z0: np.ndarray, extend: bool, bounded: bool, reach2: float):
+        """Alg. 1's expansion: the parent with the least predicted J among the valid queries,
+        steered by U. (parent, edge, "learned"); the edge is None (and ``_rejected`` says
+        why) when no node is within reach, V rejects every query or no draw gives an edge."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        n, m = sys.n_states, len(states)
+        none = (-1, None, "learned")
+        if extend and not to_goal:
+            target = self._extend(states, target, weight, wrapped)
+        aim_images = to_goal and prob.wrap_goal
+        if bounded:
+            # the nearest (weighted) nodes only, from the index: the iteration's cost does
+            # not grow with the tree
+            near = (wrapped if aim_images else plain).nearest(target, s.max_candidates)
+        else:  # the paper's planner: every node within reach
+            near = np.arange(m)
+        # each node aims at the goal's image nearest to it (angles modulo a turn)
+        aims = states[near] - prob.offset_to(states[near], target) if aim_images \
+            else target
+        diff = states[near] - aims
+        within = np.einsum("ij,ij->i", diff, diff) <= reach2
+        near = near[within]
+        if near.size == 0:
+            self._rejected = "out_of_reach"
+            return none
+        order = np.argsort(near)  # candidates in node order, as the paper's planner has them
+        near = near[order]
+        if aim_images:
+            aims = aims[within][order]
+        sh = shifts[near]
+        query = np.concatenate([states[near] + sh, aims + sh], axis=1)
+        rows, cost, neighbours = self.model.query_valid(query)
+        if rows.size == 0:
+            self._rejected = "invalid_query"
+            return none
+        best = int(np.argmin(cost))
+        parent = int(near[rows[best]])
+        prediction = self.model.steer(query[rows[best] : rows[best] + 1],
+                                      neighbours[best : best + 1])[0]
+        x0 = states[parent]
+        aim = aims[rows[best]] if aim_images else target
+        sigma = s.sigma_goal if to_goal else s.sigma
+        edge, best_d2 = None, np.inf
+        draws = self._draws(rng, x0, prediction, sigma, s.control_samples) \
+            if s.control_samples > 1 and not self._circular.any() else None
+        for c in range(s.control_samples):
+            if draws is None:  # one draw at a time (the paper's planner)
+                cand = self._edge(rng, x0, prediction, sigma, lam, z0)
+            elif c >= len(draws[0]):
+                break
+            else:
+                lam[:] = draws[1][c]
+                z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
+                cand = self._integrate_edge(x0, draws[0][c], lam, z0) \
+                    if self._within_limit(z0) else None
+            if cand is None:
+                continue
+            if s.control_samples == 1 or cand[5]:  # the paper's single draw, or a goal hit
+                edge = cand
+                break
+            # OMPL's directed control sampling: keep the draw ending nearest the target,
+            # cut at its state nearest the target
+            wd = (cand[0][1:, :n] - aim) * weight
+            d2 = np.einsum("ij,ij->i", wd, wd)
+            k = int(np.argmin(d2))
+            if d2[k] < best_d2:
+                best_d2 = float(d2[k])
+                traj_c, params_c = cand[0][: k + 2], cand[1].copy()
+                params_c[-1] = (k + 1) * s.dt
+                u_c = float(np.abs(sys.optimal_control(
+                    traj_c[:, :n], traj_c[:, n : 2 * n])).max())
+                edge = (traj_c, params_c, cand[2], k + 1, u_c, False)
+        return parent, edge, "learned"
+
+    def _goal_hits(self, path: np.ndarray) -> np.ndarray:
+        """Indices of the states of ``path`` (k, n) inside the goal region."""
+        prob = self.problem
+        if prob.goal_fn is None:
+            gd = prob.goal_residual(path)
+            return np.flatnonzero(np.einsum("ij,ij->i", gd, gd) <= prob.goal_tolerance**2)
+        return np.flatnonzero(prob.goal_distance(path) <= prob.goal_tolerance)
+
+    def _control_edge(self, rng: np.random.Generator, x0: np.ndarray):
+        """A random-control edge from ``x0`` (the expansion of sampling-based kinodynamic
+        planners, OMPL's RRT and sparse_rrt's SST): an input uniform in the control box held
+        for a uniform number of steps up to the data's longest segment, cut before its first
+        state outside the state constraints or in an obstacle (OMPL's propagateWhileValid)
+        and at its first state in the goal region. An edge tuple with the input in place of
+        the costate (`_add_edge`), or None when not even one step is valid."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        u = rng.uniform(*self._control_box)
+        steps = int(rng.integers(1, max(1, round(s.max_duration / s.dt)) + 1))
+        traj = propagate(sys, x0, u, s.dt, steps)
+        path = traj[1:]
+        ok = np.isfinite(path).all(axis=1)
+        why = "nonfinite"
+        if s.enforce_bounds and ok.all():
+            ok = prob.within_bounds(path)
+            why = "state_box"
+        if prob.validity and ok.all():
+            ok = prob.validity(path)
+            why = "obstacle"
+        end = steps if ok.all() else int(np.argmin(ok))
+        hit = self._goal_hits(path[:end])
+        if hit.size:
+            end = int(hit[0]) + 1
+        if end == 0:
+            self._rejected = why
+            return None
+        rate = float(sys.hamiltonian(x0[None], np.zeros((1, x0.size)), u[None],
+                                     s.time_weight)[0])
+        return (traj[: end + 1], u, end * s.dt * rate, end, float(np.abs(u).max()),
+                bool(hit.size))
+
+    def _add_control_edge(self, tree: PlannerData, parent: int, edge) -> int:
+        """Add the node at the end of a `_control_edge` below ``parent``."""
+        traj, u, cost, steps, u_abs, _ = edge
+        n = self.problem.system.n_states
+        for index in self._indices:
+            index.add(traj[-1])
+        return tree.add(traj[-1], parent, np.full(n, np.nan),
+                        np.full(self.problem.system.n_params, np.nan), steps * self.settings.dt,
+                        cost, traj, u_abs, control=u)
+
     def _add_edge(self, tree: PlannerData, parent: int, edge) -> int:
         """Add the node at the end of ``edge`` (as `_edge` returns it) below ``parent``."""
         traj, params, lam, steps, u_abs, _ = edge
@@ -501,7 +653,7 @@ class RRTCoLearn:
         prob, sys, s = self.problem, self.problem.system, self.settings
         rng = np.random.default_rng(seed)
         n = sys.n_states
-        tree = PlannerData(prob.start, sys.n_params)
+        tree = PlannerData(prob.start, sys.n_params, n_inputs=sys.n_inputs)
         weight = np.ones(n) if s.metric_scale is None else np.asarray(s.metric_scale)
         # tree nodes in nearest-neighbour structures: candidate parents by plain (weighted)
         # distance, and by distance with angles modulo a turn (extend, the wrapped goal)
@@ -523,6 +675,11 @@ class RRTCoLearn:
         tried = np.zeros(256, dtype=bool)  # nodes the goal connection has started from
         connection = None  # which connection made the last edge, if one did
         extend = np.isfinite(s.extend_distance)
+        # random-control expansions (`_control_edge`): only with a box to draw inputs from
+        controls = self._control_box is not None and s.control_edges is not False
+        exploring = controls and s.control_edges is True
+        since_growth_nearer = 0  # iterations since a node came nearer the goal
+        edges_by = {"learned": 0, "control": 0}
         iterations = 0
         # what became of each iteration (`diagnose`), and when the tree last grew
         outcomes = dict.fromkeys(OUTCOMES, 0)
@@ -549,6 +706,10 @@ class RRTCoLearn:
                 stalled = True
                 break
             iterations += 1
+            since_growth_nearer += 1
+            if controls and not exploring and since_growth_nearer >= CONTROLS_AFTER:
+                exploring = True  # the learned steering stalls: explore with random controls
+                switched["controls"] = iterations
             to_goal = rng.random() < s.goal_bias
             target = prob.sample_goal(rng) if to_goal else \
                 rng.uniform(sys.state_low, sys.state_high)
@@ -578,81 +739,28 @@ class RRTCoLearn:
                     connection = "funnel"
                     break
             states = tree.states[:m]
-            if extend and not to_goal:
-                target = self._extend(states, target, weight, wrapped)
-            aim_images = to_goal and prob.wrap_goal
-            if bounded:
-                # the nearest (weighted) nodes only, from the index: the iteration's cost does
-                # not grow with the tree
-                near = (wrapped if aim_images else plain).nearest(target, s.max_candidates)
-            else:  # the paper's planner: every node within reach
-                near = np.arange(m)
-            # each node aims at the goal's image nearest to it (angles modulo a turn)
-            aims = states[near] - prob.offset_to(states[near], target) if aim_images \
-                else target
-            diff = states[near] - aims
-            within = np.einsum("ij,ij->i", diff, diff) <= reach2
-            near = near[within]
-            if near.size == 0:
-                outcomes["out_of_reach"] += 1
-                continue
-            order = np.argsort(near)  # candidates in node order, as the paper's planner has them
-            near = near[order]
-            if aim_images:
-                aims = aims[within][order]
-            sh = shifts[near]
-            query = np.concatenate([states[near] + sh, aims + sh], axis=1)
-            rows, cost, neighbours = self.model.query_valid(query)
-            if rows.size == 0:
-                outcomes["invalid_query"] += 1
-                continue
-            best = int(np.argmin(cost))
-            parent = int(near[rows[best]])
-            prediction = self.model.steer(query[rows[best] : rows[best] + 1],
-                                          neighbours[best : best + 1])[0]
-            x0 = states[parent]
-            aim = aims[rows[best]] if aim_images else target
-            sigma = s.sigma_goal if to_goal else s.sigma
-            edge, best_d2 = None, np.inf
-            draws = self._draws(rng, x0, prediction, sigma, s.control_samples) \
-                if s.control_samples > 1 and not self._circular.any() else None
-            for c in range(s.control_samples):
-                if draws is None:  # one draw at a time (the paper's planner)
-                    cand = self._edge(rng, x0, prediction, sigma, lam, z0)
-                elif c >= len(draws[0]):
-                    break
-                else:
-                    lam[:] = draws[1][c]
-                    z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
-                    cand = self._integrate_edge(x0, draws[0][c], lam, z0) \
-                        if self._within_limit(z0) else None
-                if cand is None:
-                    continue
-                if s.control_samples == 1 or cand[5]:  # the paper's single draw, or a goal hit
-                    edge = cand
-                    break
-                # OMPL's directed control sampling: keep the draw ending nearest the target,
-                # cut at its state nearest the target
-                wd = (cand[0][1:, :n] - aim) * weight
-                d2 = np.einsum("ij,ij->i", wd, wd)
-                k = int(np.argmin(d2))
-                if d2[k] < best_d2:
-                    best_d2 = float(d2[k])
-                    traj_c, params_c = cand[0][: k + 2], cand[1].copy()
-                    params_c[-1] = (k + 1) * s.dt
-                    u_c = float(np.abs(sys.optimal_control(
-                        traj_c[:, :n], traj_c[:, n : 2 * n])).max())
-                    edge = (traj_c, params_c, cand[2], k + 1, u_c, False)
+            if exploring and (not to_goal or not self._within_reach(states, target, weight,
+                                                                     wrapped)):
+                parent, edge, kind = -1, None, "control"
+            else:
+                parent, edge, kind = self._learned_iteration(
+                    rng, states, target, to_goal, weight, plain, wrapped, shifts, lam, z0,
+                    extend, bounded, reach2)
+            if edge is None and exploring:
+                parent = int(wrapped.nearest(target, 1)[0])
+                edge, kind = self._control_edge(rng, states[parent]), "control"
             if edge is None:
                 outcomes[self._rejected] += 1
                 continue
             outcomes["added"] += 1
+            edges_by[kind] += 1
             last_growth = iterations
-            node = self._add_edge(tree, parent, edge)
+            node = self._add_control_edge(tree, parent, edge) if kind == "control" \
+                else self._add_edge(tree, parent, edge)
             traj, hit = edge[0], edge[5]
             d_goal = float(prob.goal_distance(traj[-1:, :n])[0])
             if d_goal < best_goal:
-                best_goal, since_nearer = d_goal, 0
+                best_goal, since_nearer, since_growth_nearer = d_goal, 0, 0
             if node == shifts.shape[0]:
                 shifts = np.concatenate([shifts, np.empty_like(shifts)])
             shifts[node] = sys.wrap_shift(traj[-1:, :n])[0]
@@ -680,10 +788,11 @@ class RRTCoLearn:
             else None,
             # which edge reached the goal: the learned steering's, or a connection's
             extra={**({"goal_connected": connection is not None, "connection": connection,
-                       **({"funnel_states": len(search.funnel)} if search else {}),
-                       **({"connections_switched_on": switched} if switched else {})}
+                       **({"funnel_states": len(search.funnel)} if search else {})}
                       if connecting or search else {}),
+                   **({"connections_switched_on": switched} if switched else {}),
                    "outcomes": outcomes, "stalled": stalled,
+                   **({"edges_by": edges_by} if controls else {}),
                    **({} if goal_node >= 0 else {"diagnosis": diagnose(
                        outcomes, stalled, tree.n_nodes, prob.u_max is not None,
                        (float(prob.goal_distance(prob.start)[0]), float(dist[end])))})},

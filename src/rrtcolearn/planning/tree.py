@@ -12,16 +12,19 @@ class PlannerData:
 
     Edge i (into node i) starts at ``states[parents[i]]`` with ``costates[i]`` and runs for
     ``durations[i]`` seconds at cost ``costs[i]``; ``params[i]`` are the steering parameters
-    that produced it, ``max_abs_u[i]`` the largest |u| along it. ``trajectories[i]`` holds
+    that produced it, ``max_abs_u[i]`` the largest |u| along it. A control edge (a constant
+    input, the planner's random-control expansion) has ``controls[i]`` and NaN costate and
+    parameters; an extremal edge has NaN controls. ``trajectories[i]`` holds
     its integrated states, for drawing.
     """
 
-    def __init__(self, root: np.ndarray, n_params: int, capacity: int = 256):
+    def __init__(self, root: np.ndarray, n_params: int, capacity: int = 256, n_inputs: int = 1):
         n = root.shape[0]
         self.n_nodes = 0
         self.states = np.empty((capacity, n))
         self.parents = np.empty(capacity, dtype=np.int64)
         self.costates = np.empty((capacity, n))
+        self.controls = np.full((capacity, n_inputs), np.nan)
         self.params = np.empty((capacity, n_params))
         self.durations = np.empty(capacity)
         self.costs = np.empty(capacity)
@@ -31,18 +34,22 @@ class PlannerData:
                  0.0)
 
     def _grow(self) -> None:
-        for name in ("states", "parents", "costates", "params", "durations", "costs",
-                     "max_abs_u"):
+        for name in ("states", "parents", "costates", "controls", "params", "durations",
+                     "costs", "max_abs_u"):
             old = getattr(self, name)
-            new = np.empty((2 * old.shape[0], *old.shape[1:]), dtype=old.dtype)
+            new = np.full((2 * old.shape[0], *old.shape[1:]), np.nan, dtype=old.dtype) \
+                if name == "controls" else np.empty((2 * old.shape[0], *old.shape[1:]),
+                                                    dtype=old.dtype)
             new[: self.n_nodes] = old[: self.n_nodes]
             setattr(self, name, new)
 
     def add(self, state, parent, costate, params, duration, cost, trajectory,
-            max_abs_u) -> int:
+            max_abs_u, control=None) -> int:
         if self.n_nodes == self.states.shape[0]:
             self._grow()
         i = self.n_nodes
+        if control is not None:
+            self.controls[i] = control
         self.states[i] = state
         self.parents[i] = parent
         self.costates[i] = costate
@@ -142,13 +149,20 @@ class Plan:
         return float(np.linalg.norm(diff))
 
     def edges(self) -> list[dict]:
+        """The path's edges: an extremal edge has ``costate`` and ``params`` (``control``
+        null), a control edge the constant ``control`` (``costate`` and ``params`` null)."""
         t = self.tree
+
+        def listed(a: np.ndarray) -> list[float] | None:
+            return None if np.isnan(a).all() else a.tolist()
+
         return [
             {
                 "from": t.states[t.parents[i]].tolist(),
                 "to": t.states[i].tolist(),
-                "costate": t.costates[i].tolist(),
-                "params": t.params[i].tolist(),
+                "costate": listed(t.costates[i]),
+                "params": listed(t.params[i]),
+                "control": listed(t.controls[i]),
                 "duration": float(t.durations[i]),
                 "cost": float(t.costs[i]),
                 "max_abs_u": float(t.max_abs_u[i]),

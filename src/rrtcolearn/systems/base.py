@@ -43,6 +43,8 @@ class System:
     params_from_costate : ``(x (N,n), lambda (N,n)) -> p (N,k)``, the inverse of
         ``costate_from_params`` on H* = 0 (needed for data simulated backwards from a goal,
         whose costate is known only at the far end); None if the system has none.
+    propagate_jit : compiled ``(x0 (n,), u (m,), dt, steps) -> states (steps+1, n)``, RK4 of
+        ``dynamics`` under a constant input (`rrtcolearn.integrate.propagate`).
     input_low, input_high : (m,) box of the inputs (+-inf where unbounded; None: no limits).
         With limits, u* is the minimiser of H over the box and every kernel above uses it
         (saturated optimal control, `rrtcolearn.systems.symbolic.limit_derivation`).
@@ -73,6 +75,7 @@ class System:
     params_from_costate: Callable | None = None
     input_low: np.ndarray | None = None
     input_high: np.ndarray | None = None
+    propagate_jit: Callable | None = None
 
     @property
     def metric_scale(self) -> np.ndarray:

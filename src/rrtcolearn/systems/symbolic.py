@@ -528,7 +528,15 @@ def generate_source(der: Derivation, line: tuple | None = None) -> str:
     L += [
         "",
         "",
-        "define_kernels(globals())  # rollout_jit, rollout_batch_jit",
+        "@numba.njit(cache=True)",
+        "def dynamics_jit(x, u, out):",
+        "    # x' = a(x) + B(x) u for one state and a given input (planners that choose inputs)",
+        *_unpack(xn, "x"),
+        *_unpack(un, "u"),
+        *_assignments(sp, f, [f"out[{i}]" for i in range(n)]),
+        "",
+        "",
+        "define_kernels(globals())  # rollout_jit, rollout_batch_jit, propagate_jit",
         "",
         "",
         "def _f64(a):",
@@ -736,6 +744,7 @@ _GENERATED = {
     "hamiltonian": "hamiltonian",
     "dynamics": "dynamics",
     "params_from_costate": "params_from_costate",
+    "propagate_jit": "propagate_jit",
 }
 
 
@@ -898,6 +907,7 @@ def _generated_fields(der: Derivation, cp: CostateParametrisation | None,
         optimal_control=module.optimal_control,
         hamiltonian=module.hamiltonian,
         dynamics=module.dynamics,
+        propagate_jit=module.propagate_jit,
         input_low=np.array(der.input_low),
         input_high=np.array(der.input_high),
         source=source,
