@@ -53,14 +53,23 @@ def rk4_numpy(z0: np.ndarray, w: float, dt: float, steps: int,
     return np.array(out)
 
 
-def pendulum_edge(e: dict, w: float, dt: float) -> tuple[np.ndarray, np.ndarray, float]:
+def pendulum_edge(e: dict, w: float, dt: float, u_max: float | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, float]:
     """An edge of a pendulum plan file re-simulated independently: states (k+1, 2), inputs
-    (k+1,) and cost. An extremal edge runs Eqs. 6-7 from its costate (u = -lambda_omega); a
-    control edge holds its input u in theta'' = sin(theta) + u, at cost rate w + u^2/2."""
+    (k+1,) and cost. An extremal edge runs Eqs. 6-7 from its costate (u = -lambda_omega,
+    clipped to |u| <= ``u_max`` for a saturated model); a control edge holds its input u in
+    theta'' = sin(theta) + u, at cost rate w + u^2/2."""
     steps = round(e["duration"] / dt)
     if e.get("control") is None:
-        traj = rk4_numpy(np.r_[e["from"], e["costate"], 0.0], w, dt, steps)
-        return traj[:, :2], -traj[:, 3], float(traj[-1, 4])
+        bound = np.inf if u_max is None else u_max
+
+        def extremal(z, w):
+            th, om, lth, lom = z[0], z[1], z[2], z[3]
+            u = min(max(-lom, -bound), bound)
+            return np.array([om, np.sin(th) + u, -lom * np.cos(th), -lth, w + 0.5 * u * u])
+
+        traj = rk4_numpy(np.r_[e["from"], e["costate"], 0.0], w, dt, steps, rhs=extremal)
+        return traj[:, :2], np.clip(-traj[:, 3], -bound, bound), float(traj[-1, 4])
     u = float(e["control"][0])
 
     def rhs(z, w):

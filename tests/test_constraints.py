@@ -19,7 +19,8 @@ def resimulated_states(d: dict) -> tuple[np.ndarray, np.ndarray]:
     the plan's path."""
     xs, us = [], []
     for e in d["path"]:
-        states, u, _ = pendulum_edge(e, d["time_weight"], d["dt"])
+        states, u, _ = pendulum_edge(e, d["time_weight"], d["dt"],
+                                     d["u_max"] if d.get("limit_mode") == "saturate" else None)
         xs.append(states)
         us.append(u)
     return np.vstack(xs), np.concatenate(us)

@@ -14,6 +14,7 @@ from rrtcolearn.planning.problem import ProblemError
 def check_plan_file(d: dict) -> None:
     """Re-simulate every edge with an independent RK4 and check what the plan claims."""
     w, dt = d["time_weight"], d["dt"]
+    saturated = d["u_max"] if d.get("limit_mode") == "saturate" else None
     edges = d["path"]
     assert edges, "a solved plan has edges"
     np.testing.assert_allclose(edges[0]["from"], d["start"])
@@ -23,13 +24,14 @@ def check_plan_file(d: dict) -> None:
     for e in edges:
         steps = round(e["duration"] / dt)
         assert steps * dt == pytest.approx(e["duration"])
-        states, _, cost = pendulum_edge(e, w, dt)
+        states, _, cost = pendulum_edge(e, w, dt, saturated)
         np.testing.assert_allclose(states[-1], e["to"], atol=1e-6)
         assert cost == pytest.approx(e["cost"], abs=1e-6)
         if e["control"] is None:
-            # the costate satisfies H* = 0 at the edge start
+            # the costate satisfies H = 0 at the edge start, at u* (clipped when saturated)
             x, lam = np.array(e["from"]), np.array(e["costate"])
-            h = w + lam[0] * x[1] + lam[1] * np.sin(x[0]) - 0.5 * lam[1] ** 2
+            u = np.clip(-lam[1], -(saturated or np.inf), saturated or np.inf)
+            h = w + 0.5 * u**2 + lam[0] * x[1] + lam[1] * (np.sin(x[0]) + u)
             assert abs(h) < 1e-9
         else:  # a random-control edge: its input and nothing learned
             assert e["costate"] is None and e["params"] is None

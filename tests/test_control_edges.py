@@ -1,0 +1,112 @@
+"""Random-control edges: the planner's expansion by a constant input from the input box
+(plan.control_edges), re-simulated independently of the package."""
+
+import numpy as np
+import pytest
+from tests.conftest import pendulum_edge
+from tests.test_planner import check_plan_file
+
+from rrtcolearn import pipeline
+from rrtcolearn.config import load_config
+from rrtcolearn.evaluate import resimulate
+from rrtcolearn.integrate import propagate
+
+U_MAX = 1.0
+
+
+@pytest.fixture(scope="module")
+def limited(tmp_path_factory):
+    """The pendulum with |u| <= 1 (saturated extremals), a small dataset."""
+    cfg = load_config(overrides=[f"system.u_max={U_MAX}", "generate.n_simulations=10000",
+                                 "clean.k_max=1000"])
+    run = tmp_path_factory.mktemp("limited")
+    pipeline.generate(cfg, run)
+    pipeline.clean(cfg, run)
+    return pipeline.fit(cfg, run)
+
+
+def _with(model, **plan):
+    cfg = model.config
+    return cfg.model_copy(update={"plan": cfg.plan.model_copy(update=plan)})
+
+
+def test_propagate_matches_a_plain_rk4(pendulum):
+    x0, u, dt = np.array([0.3, -0.2]), np.array([0.7]), 0.01
+    traj = propagate(pendulum, x0, u, dt, 40)
+    x = x0.copy()
+    for _ in range(40):  # theta'' = sin(theta) + u, written out
+        def f(z):
+            return np.array([z[1], np.sin(z[0]) + u[0]])
+        k1 = f(x)
+        k2 = f(x + 0.5 * dt * k1)
+        k3 = f(x + 0.5 * dt * k2)
+        k4 = f(x + dt * k3)
+        x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    np.testing.assert_allclose(traj[-1], x, rtol=0, atol=1e-13)
+    assert traj.shape == (41, 2)
+
+
+def test_control_edges_on_resimulate_within_the_limit(limited):
+    cfg = _with(limited, control_edges=True)
+    for seed in range(3):
+        p = pipeline.plan(limited, [-np.pi, 0], [0, 0], 0.1, seed=seed, config=cfg,
+                          time_limit=30)
+        assert p.solved
+        d = p.to_dict()
+        check_plan_file(d)  # independent RK4 of both edge kinds, costs, H* = 0 on extremals
+        assert p.extra["edges_by"]["control"] > 0
+        for e in d["path"]:
+            _, u, _ = pendulum_edge(e, d["time_weight"], d["dt"], U_MAX)
+            assert np.abs(u).max() <= U_MAX + 1e-12
+            if e["control"] is not None:
+                assert e["max_abs_u"] == pytest.approx(abs(e["control"][0]))
+        r = resimulate(limited.system, p)  # the library's own re-simulation agrees
+        assert r["max_gap"] < 1e-9 and r["max_cost_gap"] < 1e-9
+        assert r["path_cost"] == pytest.approx(d["path_cost"])
+
+
+def test_control_edges_are_deterministic(limited):
+    cfg = _with(limited, control_edges=True)
+    a, b = (pipeline.plan(limited, [-np.pi, 0], [0, 0], 0.1, seed=4, config=cfg,
+                          time_limit=None, max_iterations=400) for _ in range(2))
+    assert a.to_dict()["path"] == b.to_dict()["path"]
+    assert a.to_dict()["tree"] == b.to_dict()["tree"]
+
+
+def test_off_is_the_learned_planner_and_auto_waits_for_a_stall(limited):
+    """With control edges off, or auto before the switch, no control edge is drawn; auto
+    grows the same tree as off until it switches (the switch is the only difference)."""
+    off = pipeline.plan(limited, [-np.pi, 0], [0, 0], 0.1, seed=1,
+                        config=_with(limited, control_edges=False), time_limit=None,
+                        max_iterations=60)
+    auto = pipeline.plan(limited, [-np.pi, 0], [0, 0], 0.1, seed=1,
+                         config=_with(limited, control_edges=None), time_limit=None,
+                         max_iterations=60)
+    assert "edges_by" not in off.extra
+    assert auto.extra["edges_by"]["control"] == 0
+    assert off.to_dict()["tree"] == auto.to_dict()["tree"]
+
+
+def test_no_input_box_no_control_edges(paper_model):
+    """The unbounded pendulum has no box to draw inputs from: the learned planner only."""
+    cfg = paper_model.config.model_copy(update={"plan": paper_model.config.plan.model_copy(
+        update={"control_edges": True})})
+    a = pipeline.plan(paper_model, [-np.pi, 0], [0, 0], 0.1, seed=2, config=cfg,
+                      time_limit=None, max_iterations=300)
+    b = pipeline.plan(paper_model, [-np.pi, 0], [0, 0], 0.1, seed=2, time_limit=None,
+                      max_iterations=300)
+    assert "edges_by" not in a.extra
+    assert a.to_dict()["tree"] == b.to_dict()["tree"]
+
+
+def test_control_edges_stay_inside_the_state_constraints(limited):
+    """A control edge is cut before its first state outside the constraints."""
+    cfg = _with(limited, control_edges=True, state_low=[-4 * np.pi, -2.5],
+                state_high=[4 * np.pi, 2.5])
+    p = pipeline.plan(limited, [-np.pi, 0], [0, 0], 0.1, seed=0, config=cfg, time_limit=None,
+                      max_iterations=1500)
+    t = p.tree
+    controls = np.flatnonzero(~np.isnan(t.controls[: t.n_nodes, 0]))
+    assert controls.size > 0
+    for i in controls:
+        assert np.abs(t.trajectories[i][:, 1]).max() <= 2.5
