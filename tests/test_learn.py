@@ -53,6 +53,14 @@ def test_query_valid_prefilter_changes_nothing(paper_model):
     np.testing.assert_array_equal(rows, np.flatnonzero(valid))
     np.testing.assert_allclose(cost_v, cost[valid])
     assert 0 < len(rows) < len(q)
+    # with the 1-NN prefilter on (as after mostly rejected queries): the same answers
+    f._accepted = 0.0
+    for start in range(0, 3000, 32):
+        f._accepted = 0.0
+        got = f.query_valid(q[start : start + 32])
+        want = np.flatnonzero(valid[start : start + 32])
+        np.testing.assert_array_equal(got[0], want)
+        np.testing.assert_array_equal(got[1], cost[start : start + 32][want])
 
 
 def test_fit_contract_returns_self_and_refuses_too_few_samples():

@@ -242,7 +242,12 @@ def _plan_summary(p) -> dict:
                if "goal_connected" in p.extra else {}),
             **({"diagnosis": p.extra["diagnosis"]} if "diagnosis" in p.extra else {}),
             **({"iterations_spent_on": _outcome_shares(p.extra["outcomes"])}
-               if "outcomes" in p.extra else {})}
+               if "outcomes" in p.extra else {}),
+            **({"edges_by": ", ".join(f"{k} {v}" for k, v in p.extra["edges_by"].items())}
+               if "edges_by" in p.extra else {}),
+            **({"switched_on_at_iteration": ", ".join(
+                f"{k} {v}" for k, v in p.extra["connections_switched_on"].items())}
+               if "connections_switched_on" in p.extra else {})}
 
 
 def _outcome_shares(outcomes: dict) -> str:

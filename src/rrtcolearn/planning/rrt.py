@@ -590,43 +590,73 @@ class RRTCoLearn:
 
     def _goal_hits(self, path: np.ndarray) -> np.ndarray:
         """Indices of the states of ``path`` (k, n) inside the goal region."""
-        prob = self.problem
-        if prob.goal_fn is None:
-            gd = prob.goal_residual(path)
-            return np.flatnonzero(np.einsum("ij,ij->i", gd, gd) <= prob.goal_tolerance**2)
-        return np.flatnonzero(prob.goal_distance(path) <= prob.goal_tolerance)
+        return np.flatnonzero(self._goal_mask(path))
 
-    def _control_edge(self, rng: np.random.Generator, x0: np.ndarray):
+    def _control_edge(self, rng: np.random.Generator, x0: np.ndarray, target: np.ndarray,
+                      weight: np.ndarray, directed: bool):
         """A random-control edge from ``x0`` (the expansion of sampling-based kinodynamic
         planners, OMPL's RRT and sparse_rrt's SST): an input uniform in the control box held
         for a uniform number of steps up to the data's longest segment, cut before its first
         state outside the state constraints or in an obstacle (OMPL's propagateWhileValid)
-        and at its first state in the goal region. An edge tuple with the input in place of
-        the costate (`_add_edge`), or None when not even one step is valid."""
+        and at its first state in the goal region. ``directed`` (goal-biased iterations), with
+        ``control_samples`` > 1: that many draws, and the one passing nearest ``target``
+        (weighted, angles modulo a turn) is kept, cut there (OMPL's directed control
+        sampling), unless a draw reaches the goal region.
+        An edge tuple with the input in place of the costate (`_add_control_edge`), or None
+        when no draw has even one valid step."""
         prob, sys, s = self.problem, self.problem.system, self.settings
-        u = rng.uniform(*self._control_box)
-        steps = int(rng.integers(1, max(1, round(s.max_duration / s.dt)) + 1))
-        traj = propagate(sys, x0, u, s.dt, steps)
-        path = traj[1:]
-        ok = np.isfinite(path).all(axis=1)
-        why = "nonfinite"
-        if s.enforce_bounds and ok.all():
-            ok = prob.within_bounds(path)
-            why = "state_box"
-        if prob.validity and ok.all():
-            ok = prob.validity(path)
-            why = "obstacle"
-        end = steps if ok.all() else int(np.argmin(ok))
-        hit = self._goal_hits(path[:end])
-        if hit.size:
-            end = int(hit[0]) + 1
-        if end == 0:
-            self._rejected = why
+        n = sys.n_states
+        count = max(1, s.control_samples) if directed else 1
+        longest = max(1, round(s.max_duration / s.dt))
+        inputs = rng.uniform(*self._control_box, size=(count, sys.n_inputs))
+        lengths = rng.integers(1, longest + 1, size=count)
+        paths = np.full((count, int(lengths.max()), n), np.nan)
+        for c in range(count):
+            paths[c, : lengths[c]] = propagate(sys, x0, inputs[c], s.dt, int(lengths[c]))[1:]
+        flat = paths.reshape(-1, n)
+        ok = np.isfinite(flat).all(axis=1)
+        if s.enforce_bounds and ok.any():
+            ok[ok] = prob.within_bounds(flat[ok])
+        if prob.validity and ok.any():
+            ok[ok] = prob.validity(flat[ok])
+        # each draw's valid prefix: up to its first invalid step (padding counts as invalid)
+        prefix = np.cumprod(ok.reshape(count, -1), axis=1).astype(bool)
+        if not prefix[:, 0].any():
+            first = paths[0, 0]
+            self._rejected = "nonfinite" if not np.isfinite(first).all() else \
+                "state_box" if s.enforce_bounds and not prob.within_bounds(first)[0] \
+                else "obstacle"
             return None
-        rate = float(sys.hamiltonian(x0[None], np.zeros((1, x0.size)), u[None],
-                                     s.time_weight)[0])
-        return (traj[: end + 1], u, end * s.dt * rate, end, float(np.abs(u).max()),
-                bool(hit.size))
+        hits = np.zeros_like(prefix)
+        hits[prefix] = self._goal_mask(paths[prefix])
+        if hits.any():
+            c, k = np.unravel_index(int(np.argmax(hits)), hits.shape)  # first draw, first hit
+            hit = True
+        else:
+            diff = paths - target
+            angles = list(sys.angle_dims)
+            if angles:
+                diff[..., angles] = np.mod(diff[..., angles] + np.pi, 2.0 * np.pi) - np.pi
+            d2 = np.einsum("ijk,ijk->ij", diff * weight, diff * weight)
+            d2[~prefix] = np.inf
+            if count == 1:  # the plain random control: its whole valid prefix
+                c, k = 0, int(prefix[0].sum()) - 1
+            else:
+                c, k = np.unravel_index(int(np.argmin(d2)), d2.shape)
+            hit = False
+        c, k = int(c), int(k)
+        u = inputs[c]
+        traj = np.vstack([x0[None], paths[c, : k + 1]])
+        rate = float(sys.hamiltonian(x0[None], np.zeros((1, n)), u[None], s.time_weight)[0])
+        return traj, u, (k + 1) * s.dt * rate, k + 1, float(np.abs(u).max()), hit
+
+    def _goal_mask(self, states: np.ndarray) -> np.ndarray:
+        """(N,) True for the states (N, n) inside the goal region."""
+        prob = self.problem
+        if prob.goal_fn is None:
+            gd = prob.goal_residual(states)
+            return np.einsum("ij,ij->i", gd, gd) <= prob.goal_tolerance**2
+        return prob.goal_distance(states) <= prob.goal_tolerance
 
     def _add_control_edge(self, tree: PlannerData, parent: int, edge) -> int:
         """Add the node at the end of a `_control_edge` below ``parent``."""
@@ -716,7 +746,10 @@ class RRTCoLearn:
             m = tree.n_nodes
             if to_goal:
                 since_nearer += 1
-                if auto_connect and not connecting and since_nearer >= CONNECT_AFTER:
+                # (not while random controls explore: in the external problems the
+                # connections never reached the goal then, and took up to a third of the CPU)
+                if auto_connect and not connecting and since_nearer >= CONNECT_AFTER \
+                        and not exploring:
                     connecting = True  # the learned steering stalls near the goal
                     switched["shooting"] = iterations
             if to_goal and connecting:
@@ -748,7 +781,8 @@ class RRTCoLearn:
                     extend, bounded, reach2)
             if edge is None and exploring:
                 parent = int(wrapped.nearest(target, 1)[0])
-                edge, kind = self._control_edge(rng, states[parent]), "control"
+                edge = self._control_edge(rng, states[parent], target, weight, to_goal)
+                kind = "control"
             if edge is None:
                 outcomes[self._rejected] += 1
                 continue
