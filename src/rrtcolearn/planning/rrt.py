@@ -225,6 +225,10 @@ class RRTCoLearn:
     inside the goal region, or before its first state that the problem's validity checker
     rejects (obstacles); it is rejected when it leaves the state box in a non-angle
     coordinate or when its input exceeds the problem's ``u_max`` anywhere.
+
+    Beyond the paper, for a system with an input box: once the learned steering stalls, the
+    tree also grows by random-control edges (``control_edges``, `_control_edge`), and the
+    learned steering is kept for goal targets within the data's reach.
     """
 
     def __init__(self, problem: PlanningProblem, model: LearnedFunctions,
