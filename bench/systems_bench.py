@@ -15,10 +15,11 @@ which can only lower the success rate). ``--set`` applies configuration override
 system; ``--mlp`` also fits the neural-network learner and reports its J errors. Prints a
 line per system and, last, one JSON line.
 
-Every solved plan is re-simulated: each path edge is integrated again with
-``system.rollout_jit`` from its start node and costate for its duration, and must land on the
-next node within 1e-6 (``resim_max_gap``) with its largest |u| within the input limits
-(``max_abs_u_resim_max``).
+Every solved plan is re-simulated (`rrtcolearn.evaluate.resimulate`): each path edge is
+integrated again from its start node, an extremal edge from its costate, a random-control
+edge under its input, for its duration, and must land on the next node within 1e-6
+(``resim_max_gap``) with its largest |u| within the input limits (``max_abs_u_resim_max``).
+``edges_by`` counts the solved paths' tree edges by kind (learned steering, random controls).
 
 ``--limits 0.5,0.25`` (torque limits): for each system, first its unbounded row as above, then
 the median over the solved plans of their largest |u| (``Plan.max_abs_u``) is the reference
@@ -159,6 +160,10 @@ def bench_system(name: str, queries: int, time_limit: float | None,
         [bool(p.extra.get("goal_connected")) for p in solved])), 3) if solved else None
     row["connections"] = {k: sum(p.extra.get("connection") == k for p in solved)
                           for k in ("shooting", "funnel")}
+    row["edges_by"] = {k: int(sum(p.extra.get("edges_by", {}).get(k, 0) for p in solved))
+                       for k in ("learned", "control")}
+    row["controls_switched_on"] = sum("controls" in p.extra.get("connections_switched_on", {})
+                                      for p in plans)
     row["plan_cost_median"] = round(float(np.median([p.path_cost for p in solved])), 3) \
         if solved else None
     row["plan_duration_median"] = round(float(np.median([p.path_duration for p in solved])), 2) \

@@ -257,6 +257,19 @@ class RRTCoLearn:
         elif problem.u_max is not None:
             self._control_box = (np.full(sys.n_inputs, -problem.u_max),
                                  np.full(sys.n_inputs, problem.u_max))
+        if self._control_box is not None:
+            # the running cost w + u^T R u / 2 of a held input is H at lambda = 0; R read off
+            # the system's H once (polarisation), so an edge's cost needs no call into it
+            m, w = sys.n_inputs, self.settings.time_weight
+            pairs = [(i, j) for i in range(m) for j in range(i + 1, m)]
+            eye = np.eye(m)
+            units = np.vstack([eye, *(eye[i] + eye[j] for i, j in pairs)])
+            x = np.broadcast_to(problem.start, (len(units), sys.n_states))
+            q = 2.0 * (sys.hamiltonian(x, np.zeros_like(x), units, w) - w)
+            r = np.diag(q[:m])
+            for row, (i, j) in enumerate(pairs):
+                r[i, j] = r[j, i] = 0.5 * (q[m + row] - q[i] - q[j])
+            self._input_weight = r
 
     def _sample_params(self, rng, prediction: np.ndarray, sigma: float) -> np.ndarray:
         sys, s = self.problem.system, self.settings
@@ -651,7 +664,7 @@ class RRTCoLearn:
         c, k = int(c), int(k)
         u = inputs[c]
         traj = np.vstack([x0[None], paths[c, : k + 1]])
-        rate = float(sys.hamiltonian(x0[None], np.zeros((1, n)), u[None], s.time_weight)[0])
+        rate = s.time_weight + 0.5 * float(u @ self._input_weight @ u)
         return traj, u, (k + 1) * s.dt * rate, k + 1, float(np.abs(u).max()), hit
 
     def _goal_mask(self, states: np.ndarray) -> np.ndarray:
