@@ -103,8 +103,9 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max, scale=
 
 
 @_numba.njit(cache=True)
-def propagate_jit(x0, u, dt, n_steps):
-    # RK4 of x' = f(x, u) under the constant input u: states (n_steps + 1, n)
+def propagate_jit(x0, u, dt, n_steps, low, high):
+    # RK4 of x' = f(x, u) under the constant input u: states (k + 1, n), k <= n_steps; it
+    # stops after the first state outside [low, high] or not finite (that state included)
     n = x0.shape[0]
     traj = _np.empty((n_steps + 1, n))
     traj[0] = x0
@@ -125,8 +126,14 @@ def propagate_jit(x0, u, dt, n_steps):
         for i in range(n):
             tmp[i] = x[i] + dt * k3[i]
         dynamics_jit(tmp, u, k4)
+        inside = True
         for i in range(n):
-            traj[s + 1, i] = x[i] + dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+            v = x[i] + dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+            traj[s + 1, i] = v
+            if not (low[i] <= v <= high[i]):
+                inside = False
+        if not inside:
+            return traj[: s + 2]
     return traj
 '''
 
@@ -147,13 +154,19 @@ def rollout(system, z0: np.ndarray, w: float, dt: float, n_steps: int) -> np.nda
                               int(n_steps))
 
 
-def propagate(system, x0: np.ndarray, u: np.ndarray, dt: float, n_steps: int) -> np.ndarray:
+def propagate(system, x0: np.ndarray, u: np.ndarray, dt: float, n_steps: int,
+              low: np.ndarray | None = None, high: np.ndarray | None = None) -> np.ndarray:
     """RK4 of the plain dynamics from ``x0`` (n,) under the constant input ``u`` (m,) for
-    ``n_steps`` steps of ``dt``: states (n_steps+1, n). Piecewise-constant controls (random
-    control edges, peers' paths) are integrated with this one function."""
+    ``n_steps`` steps of ``dt``: states (n_steps+1, n). With ``low``/``high`` (n,) (+-inf
+    where free) it stops early, after the first state outside them or not finite (that state
+    is the last row). Piecewise-constant controls (random-control edges, peers' paths) are
+    integrated with this one function."""
+    n = len(x0)
+    low = np.full(n, -np.inf) if low is None else np.ascontiguousarray(low, dtype=np.float64)
+    high = np.full(n, np.inf) if high is None else np.ascontiguousarray(high, dtype=np.float64)
     return system.propagate_jit(np.ascontiguousarray(x0, dtype=np.float64),
                                 np.ascontiguousarray(u, dtype=np.float64), float(dt),
-                                int(n_steps))
+                                int(n_steps), low, high)
 
 
 def rollout_batch(

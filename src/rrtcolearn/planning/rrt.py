@@ -257,6 +257,12 @@ class RRTCoLearn:
         elif problem.u_max is not None:
             self._control_box = (np.full(sys.n_inputs, -problem.u_max),
                                  np.full(sys.n_inputs, problem.u_max))
+        # propagation stops at the state constraints (non-angle coordinates)
+        low, high = np.full(sys.n_states, -np.inf), np.full(sys.n_states, np.inf)
+        if self.settings.enforce_bounds:
+            dims = sys.bounded_dims
+            low[dims], high[dims] = problem.state_low[dims], problem.state_high[dims]
+        self._box = (low, high)
         if self._control_box is not None:
             # the running cost w + u^T R u / 2 of a held input is H at lambda = 0; R read off
             # the system's H once (polarisation), so an edge's cost needs no call into it
@@ -629,7 +635,9 @@ class RRTCoLearn:
         lengths = rng.integers(1, longest + 1, size=count)
         paths = np.full((count, int(lengths.max()), n), np.nan)
         for c in range(count):
-            paths[c, : lengths[c]] = propagate(sys, x0, inputs[c], s.dt, int(lengths[c]))[1:]
+            # stopped after its first state outside the constraints: the rest is NaN
+            states = propagate(sys, x0, inputs[c], s.dt, int(lengths[c]), *self._box)[1:]
+            paths[c, : len(states)] = states
         flat = paths.reshape(-1, n)
         ok = np.isfinite(flat).all(axis=1)
         if s.enforce_bounds and ok.any():
@@ -650,12 +658,10 @@ class RRTCoLearn:
             c, k = np.unravel_index(int(np.argmax(hits)), hits.shape)  # first draw, first hit
             hit = True
         else:
-            diff = paths - target
-            angles = list(sys.angle_dims)
-            if angles:
-                diff[..., angles] = np.mod(diff[..., angles] + np.pi, 2.0 * np.pi) - np.pi
-            d2 = np.einsum("ijk,ijk->ij", diff * weight, diff * weight)
-            d2[~prefix] = np.inf
+            d2 = np.full(prefix.shape, np.inf)
+            if count > 1:  # nearest the goal region in its own measure, else the target
+                d2[prefix] = self.problem.goal_distance(paths[prefix]) if directed else \
+                    self._target_distance(paths[prefix], target, weight)
             if count == 1:  # the plain random control: its whole valid prefix
                 c, k = 0, int(prefix[0].sum()) - 1
             else:
@@ -666,6 +672,15 @@ class RRTCoLearn:
         traj = np.vstack([x0[None], paths[c, : k + 1]])
         rate = s.time_weight + 0.5 * float(u @ self._input_weight @ u)
         return traj, u, (k + 1) * s.dt * rate, k + 1, float(np.abs(u).max()), hit
+
+    def _target_distance(self, states: np.ndarray, target: np.ndarray, weight: np.ndarray
+                         ) -> np.ndarray:
+        """(N,) weighted distance of states (N, n) to ``target``, angles modulo a turn."""
+        diff = states - target
+        angles = list(self.problem.system.angle_dims)
+        if angles:
+            diff[:, angles] = np.mod(diff[:, angles] + np.pi, 2.0 * np.pi) - np.pi
+        return np.sqrt(np.einsum("ij,ij->i", diff * weight, diff * weight))
 
     def _goal_mask(self, states: np.ndarray) -> np.ndarray:
         """(N,) True for the states (N, n) inside the goal region."""
@@ -743,6 +758,8 @@ class RRTCoLearn:
         if s.goal_funnel:
             search = self._build_funnel(rng, weight, s.goal_funnel)
         best_goal = float(prob.goal_distance(prob.start)[0])
+        goal_dist = np.full(256, np.inf)  # every node's distance to the goal region
+        goal_dist[0] = best_goal
         since_nearer = 0  # goal-biased iterations since a node came nearer the goal
         failed_shots = 0
         switched = {}  # when the automatic connections were switched on (iteration)
@@ -814,6 +831,8 @@ class RRTCoLearn:
                 best_goal, since_nearer, since_growth_nearer = d_goal, 0, 0
             if node == shifts.shape[0]:
                 shifts = np.concatenate([shifts, np.empty_like(shifts)])
+            goal_dist = _grown(goal_dist, node + 1, np.inf)
+            goal_dist[node] = d_goal
             shifts[node] = sys.wrap_shift(traj[-1:, :n])[0]
             if hit:
                 goal_node = node
