@@ -615,72 +615,60 @@ class RRTCoLearn:
         """Indices of the states of ``path`` (k, n) inside the goal region."""
         return np.flatnonzero(self._goal_mask(path))
 
-    def _control_edge(self, rng: np.random.Generator, x0: np.ndarray, target: np.ndarray,
-                      weight: np.ndarray, directed: bool):
+    def _control_edge(self, rng: np.random.Generator, x0: np.ndarray, directed: bool):
         """A random-control edge from ``x0`` (the expansion of sampling-based kinodynamic
         planners, OMPL's RRT and sparse_rrt's SST): an input uniform in the control box held
         for a uniform number of steps up to the data's longest segment, cut before its first
         state outside the state constraints or in an obstacle (OMPL's propagateWhileValid)
-        and at its first state in the goal region. ``directed`` (goal-biased iterations), with
-        ``control_samples`` > 1: that many draws, and the one passing nearest ``target``
-        (weighted, angles modulo a turn) is kept, cut there (OMPL's directed control
-        sampling), unless a draw reaches the goal region.
-        An edge tuple with the input in place of the costate (`_add_control_edge`), or None
-        when no draw has even one valid step."""
+        and at its first state in the goal region. ``directed`` (goal-biased iterations):
+        ``control_samples`` draws, and the one passing nearest the goal region (in the goal
+        test's own distance) is kept, cut there (OMPL's directed control sampling), unless a
+        draw reaches the region. An edge tuple with the input in place of the costate
+        (`_add_control_edge`), or None when no draw has even one valid step."""
         prob, sys, s = self.problem, self.problem.system, self.settings
-        n = sys.n_states
         count = max(1, s.control_samples) if directed else 1
         longest = max(1, round(s.max_duration / s.dt))
         inputs = rng.uniform(*self._control_box, size=(count, sys.n_inputs))
         lengths = rng.integers(1, longest + 1, size=count)
-        paths = np.full((count, int(lengths.max()), n), np.nan)
+        valid, why = [], None
         for c in range(count):
-            # stopped after its first state outside the constraints: the rest is NaN
+            # propagation stops after the first state outside the constraints (or not
+            # finite): only that last state needs the check; obstacles need every state
             states = propagate(sys, x0, inputs[c], s.dt, int(lengths[c]), *self._box)[1:]
-            paths[c, : len(states)] = states
-        flat = paths.reshape(-1, n)
-        ok = np.isfinite(flat).all(axis=1)
-        if s.enforce_bounds and ok.any():
-            ok[ok] = prob.within_bounds(flat[ok])
-        if prob.validity and ok.any():
-            ok[ok] = prob.validity(flat[ok])
-        # each draw's valid prefix: up to its first invalid step (padding counts as invalid)
-        prefix = np.cumprod(ok.reshape(count, -1), axis=1).astype(bool)
-        if not prefix[:, 0].any():
-            first = paths[0, 0]
-            self._rejected = "nonfinite" if not np.isfinite(first).all() else \
-                "state_box" if s.enforce_bounds and not prob.within_bounds(first)[0] \
-                else "obstacle"
-            return None
-        hits = np.zeros_like(prefix)
-        hits[prefix] = self._goal_mask(paths[prefix])
-        if hits.any():
-            c, k = np.unravel_index(int(np.argmax(hits)), hits.shape)  # first draw, first hit
-            hit = True
-        else:
-            d2 = np.full(prefix.shape, np.inf)
-            if count > 1:  # nearest the goal region in its own measure, else the target
-                d2[prefix] = self.problem.goal_distance(paths[prefix]) if directed else \
-                    self._target_distance(paths[prefix], target, weight)
-            if count == 1:  # the plain random control: its whole valid prefix
-                c, k = 0, int(prefix[0].sum()) - 1
+            last = states[-1]
+            if not np.isfinite(last).all():
+                states, reason = states[:-1], "nonfinite"
+            elif s.enforce_bounds and not prob.within_bounds(last)[0]:
+                states, reason = states[:-1], "state_box"
             else:
-                c, k = np.unravel_index(int(np.argmin(d2)), d2.shape)
-            hit = False
-        c, k = int(c), int(k)
+                reason = None
+            if prob.validity and len(states):
+                ok = prob.validity(states)
+                if not ok.all():
+                    states, reason = states[: int(np.argmin(ok))], "obstacle"
+            if why is None and not len(states):
+                why = reason
+            valid.append(states)
+        lengths = np.array([len(v) for v in valid])
+        if not lengths.any():
+            self._rejected = why
+            return None
+        flat = np.concatenate(valid)
+        ends = np.cumsum(lengths)
+        hits = np.flatnonzero(self._goal_mask(flat))
+        hit = bool(hits.size)
+        if hit:  # the first draw's first state in the goal region
+            j = int(hits[0])
+        elif count == 1:  # the plain random control: its whole valid prefix
+            j = len(flat) - 1
+        else:  # directed: the state nearest the goal region
+            j = int(np.argmin(prob.goal_distance(flat)))
+        c = int(np.searchsorted(ends, j, side="right"))
+        k = j - (int(ends[c - 1]) if c else 0)
         u = inputs[c]
-        traj = np.vstack([x0[None], paths[c, : k + 1]])
+        traj = np.vstack([x0[None], valid[c][: k + 1]])
         rate = s.time_weight + 0.5 * float(u @ self._input_weight @ u)
         return traj, u, (k + 1) * s.dt * rate, k + 1, float(np.abs(u).max()), hit
-
-    def _target_distance(self, states: np.ndarray, target: np.ndarray, weight: np.ndarray
-                         ) -> np.ndarray:
-        """(N,) weighted distance of states (N, n) to ``target``, angles modulo a turn."""
-        diff = states - target
-        angles = list(self.problem.system.angle_dims)
-        if angles:
-            diff[:, angles] = np.mod(diff[:, angles] + np.pi, 2.0 * np.pi) - np.pi
-        return np.sqrt(np.einsum("ij,ij->i", diff * weight, diff * weight))
 
     def _goal_mask(self, states: np.ndarray) -> np.ndarray:
         """(N,) True for the states (N, n) inside the goal region."""
@@ -815,7 +803,7 @@ class RRTCoLearn:
                     extend, bounded, reach2)
             if edge is None and exploring:
                 parent = int(wrapped.nearest(target, 1)[0])
-                edge = self._control_edge(rng, states[parent], target, weight, to_goal)
+                edge = self._control_edge(rng, states[parent], to_goal)
                 kind = "control"
             if edge is None:
                 outcomes[self._rejected] += 1
