@@ -297,17 +297,23 @@ class RRTCoLearn:
         out[k] = np.round(_truncnorm(rng, prediction[k], sigma, s.dt, s.max_duration), s.decimals)
         return out
 
-    def _extend(self, states: np.ndarray, target: np.ndarray, weight: np.ndarray,
-                wrapped: NodeIndex) -> np.ndarray:
-        """``target`` moved to within ``extend_distance`` of its nearest node (weighted, angles
-        modulo a turn)."""
+    def _nearest(self, states: np.ndarray, target: np.ndarray, weight: np.ndarray,
+                 wrapped: NodeIndex) -> tuple[int, np.ndarray, float]:
+        """The tree node nearest ``target`` (weighted, angles modulo a turn): its index, the
+        offset to the target (angles the short way round) and the weighted distance."""
         i = int(wrapped.nearest(target, 1)[0])
         diff = target - states[i]
         angles = list(self.problem.system.angle_dims)
         if angles:
             diff[angles] = np.mod(diff[angles] + np.pi, 2.0 * np.pi) - np.pi
         wd = diff * weight
-        dist = float(np.sqrt(wd @ wd))
+        return i, diff, float(np.sqrt(wd @ wd))
+
+    def _extend(self, states: np.ndarray, target: np.ndarray, weight: np.ndarray,
+                wrapped: NodeIndex) -> np.ndarray:
+        """``target`` moved to within ``extend_distance`` of its nearest node (weighted, angles
+        modulo a turn)."""
+        i, diff, dist = self._nearest(states, target, weight, wrapped)
         factor = min(1.0, self.settings.extend_distance / dist) if dist > 0 else 1.0
         return states[i] + factor * diff
 
@@ -526,13 +532,7 @@ class RRTCoLearn:
                       wrapped: NodeIndex) -> bool:
         """Whether the tree node nearest ``target`` (weighted, angles modulo a turn) lies
         within the data's reach of it, where U has seen segments that long."""
-        i = int(wrapped.nearest(target, 1)[0])
-        diff = target - states[i]
-        angles = list(self.problem.system.angle_dims)
-        if angles:
-            diff[angles] = np.mod(diff[angles] + np.pi, 2.0 * np.pi) - np.pi
-        wd = diff * weight
-        return float(np.sqrt(wd @ wd)) <= self.settings.connect_reach
+        return self._nearest(states, target, weight, wrapped)[2] <= self.settings.connect_reach
 
     def _learned_iteration(self, rng, states: np.ndarray, target: np.ndarray,
                            to_goal: bool, weight: np.ndarray, plain: NodeIndex,
