@@ -81,5 +81,7 @@ class NodeIndex:
         # distances recomputed one way for both parts, so equal points compare equal
         # wherever they are stored
         d2 = self._sqdist(self._points[idx], q)
+        if k == 1:  # the same answer as the sort below: least distance, then least index
+            return idx[d2 == d2.min()].min(keepdims=True)
         order = np.lexsort((idx, d2))[:k]
         return idx[order]

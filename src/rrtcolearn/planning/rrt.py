@@ -624,7 +624,8 @@ class RRTCoLearn:
         ``control_samples`` draws, and the one passing nearest the goal region (in the goal
         test's own distance) is kept, cut there (OMPL's directed control sampling), unless a
         draw reaches the region. An edge tuple with the input in place of the costate
-        (`_add_control_edge`), or None when no draw has even one valid step."""
+        (`_add_control_edge`) and the end's distance to the goal region, or None when no
+        draw has even one valid step."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         count = max(1, s.control_samples) if directed else 1
         longest = max(1, round(s.max_duration / s.dt))
@@ -635,13 +636,11 @@ class RRTCoLearn:
             # propagation stops after the first state outside the constraints (or not
             # finite): only that last state needs the check; obstacles need every state
             states = propagate(sys, x0, inputs[c], s.dt, int(lengths[c]), *self._box)[1:]
-            last = states[-1]
-            if not np.isfinite(last).all():
-                states, reason = states[:-1], "nonfinite"
-            elif s.enforce_bounds and not prob.within_bounds(last)[0]:
-                states, reason = states[:-1], "state_box"
-            else:
-                reason = None
+            last, (low, high) = states[-1], self._box
+            reason = None
+            if not (np.all(low <= last) and np.all(last <= high)):  # NaN fails too
+                reason = "state_box" if np.isfinite(last).all() else "nonfinite"
+                states = states[:-1]
             if prob.validity and len(states):
                 ok = prob.validity(states)
                 if not ok.all():
@@ -655,20 +654,27 @@ class RRTCoLearn:
             return None
         flat = np.concatenate(valid)
         ends = np.cumsum(lengths)
-        hits = np.flatnonzero(self._goal_mask(flat))
+        # a user's goal function is called once per edge: its distances serve the goal test,
+        # the directed choice and the end's distance (the planner's progress)
+        dist = prob.goal_distance(flat) if prob.goal_fn is not None else None
+        hits = np.flatnonzero(dist <= prob.goal_tolerance if dist is not None
+                              else self._goal_mask(flat))
         hit = bool(hits.size)
         if hit:  # the first draw's first state in the goal region
             j = int(hits[0])
         elif count == 1:  # the plain random control: its whole valid prefix
             j = len(flat) - 1
         else:  # directed: the state nearest the goal region
-            j = int(np.argmin(prob.goal_distance(flat)))
+            j = int(np.argmin(prob.goal_distance(flat) if dist is None else dist))
         c = int(np.searchsorted(ends, j, side="right"))
         k = j - (int(ends[c - 1]) if c else 0)
         u = inputs[c]
         traj = np.vstack([x0[None], valid[c][: k + 1]])
         rate = s.time_weight + 0.5 * float(u @ self._input_weight @ u)
-        return traj, u, (k + 1) * s.dt * rate, k + 1, float(np.abs(u).max()), hit
+        end_distance = float(dist[j]) if dist is not None else \
+            float(prob.goal_distance(traj[-1:])[0])
+        return (traj, u, (k + 1) * s.dt * rate, k + 1, float(np.abs(u).max()), hit,
+                end_distance)
 
     def _goal_mask(self, states: np.ndarray) -> np.ndarray:
         """(N,) True for the states (N, n) inside the goal region."""
@@ -680,7 +686,7 @@ class RRTCoLearn:
 
     def _add_control_edge(self, tree: PlannerData, parent: int, edge) -> int:
         """Add the node at the end of a `_control_edge` below ``parent``."""
-        traj, u, cost, steps, u_abs, _ = edge
+        traj, u, cost, steps, u_abs = edge[:5]
         n = self.problem.system.n_states
         for index in self._indices:
             index.add(traj[-1])
@@ -814,7 +820,8 @@ class RRTCoLearn:
             node = self._add_control_edge(tree, parent, edge) if kind == "control" \
                 else self._add_edge(tree, parent, edge)
             traj, hit = edge[0], edge[5]
-            d_goal = float(prob.goal_distance(traj[-1:, :n])[0])
+            d_goal = edge[6] if kind == "control" else \
+                float(prob.goal_distance(traj[-1:, :n])[0])
             if d_goal < best_goal:
                 best_goal, since_nearer, since_growth_nearer = d_goal, 0, 0
             if node == shifts.shape[0]:
