@@ -110,3 +110,21 @@ def test_control_edges_stay_inside_the_state_constraints(limited):
     assert controls.size > 0
     for i in controls:
         assert np.abs(t.trajectories[i][:, 1]).max() <= 2.5
+
+
+def test_export_of_control_edges(limited):
+    """Exported samples hold a control edge's input and no costate on it."""
+    from rrtcolearn.evaluate import sample_path
+
+    cfg = _with(limited, control_edges=True)
+    d = pipeline.plan(limited, [-np.pi, 0], [0, 0], 0.1, seed=0, config=cfg,
+                      time_limit=30).to_dict()
+    s = sample_path(limited.system, d)
+    for i, e in enumerate(d["path"]):
+        rows = np.flatnonzero(s["edge"][:-1] == i)
+        if e["control"] is not None:
+            assert np.isnan(s["costate"][rows]).all()
+            np.testing.assert_array_equal(s["input"][rows, 0], e["control"][0])
+        else:
+            assert np.isfinite(s["costate"][rows]).all()
+    np.testing.assert_allclose(s["state"][-1], d["path"][-1]["to"], atol=1e-9)

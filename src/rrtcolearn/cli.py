@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.markup import escape
@@ -475,6 +476,53 @@ def experiment(
         if summary["skipped_planners"]:
             figures["skipped"] = ", ".join(summary["skipped_planners"])
         _print_summary("experiment", figures)
+    _guard(body)
+
+
+@app.command()
+def export(
+    plan_file: Annotated[Path, typer.Argument(help="plan file (JSON) written by plan or run")],
+    dt: Annotated[float | None, typer.Option(
+        help="sample step (s), a whole multiple of the plan's integration step "
+             "(default: that step)")] = None,
+    fmt: Annotated[str, typer.Option("--format", help="csv or npz")] = "csv",
+    out: Annotated[Path | None, typer.Option(
+        "--out", help="output file (default: the plan file with .csv or .npz)")] = None,
+) -> None:
+    """Time, state, input and costate samples along a plan's path, re-simulated from its
+    edges (the trajectory to execute)."""
+    def body():
+        from rrtcolearn.data.store import atomic_write_bytes, atomic_write_text
+        from rrtcolearn.evaluate import sample_path
+
+        if fmt not in ("csv", "npz"):
+            raise ConfigError(f"--format {fmt!r}: give csv or npz")
+        if dt is not None and not dt > 0:
+            raise ConfigError(f"--dt {dt}: give a positive step")
+        d = pipeline.read_plan(plan_file)
+        system = pipeline.plan_system(d)
+        try:
+            samples = sample_path(system, d, dt)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        target = out if out is not None else plan_file.with_suffix(f".{fmt}")
+        columns = ["t", *system.state_names, *system.input_names,
+                   *(f"lambda_{name}" for name in system.state_names), "edge"]
+        table = np.column_stack([samples["t"], samples["state"], samples["input"],
+                                 samples["costate"], samples["edge"]])
+        if fmt == "csv":
+            lines = [",".join(columns)] + [",".join(repr(float(v)) for v in row)
+                                          for row in table]
+            atomic_write_text(target, "\n".join(lines) + "\n")
+        else:
+            import io
+
+            buffer = io.BytesIO()
+            np.savez(buffer, columns=np.array(columns), **samples)
+            atomic_write_bytes(target, buffer.getvalue())
+        _print_summary(f"export -> {target}", {
+            "samples": len(samples["t"]), "duration_s": round(float(samples["t"][-1]), 4),
+            "edges": int(samples["edge"][-1]) + 1, "columns": ", ".join(columns)})
     _guard(body)
 
 

@@ -61,37 +61,85 @@ def held_out_errors(system: System, functions: LearnedFunctions, held_out: Datas
                          len(accepted) / len(X))
 
 
+@dataclass(frozen=True)
+class EdgeTrajectory:
+    """One plan edge re-integrated at the plan's step: states (k+1, n), inputs (k+1, m),
+    costates (k+1, n) (NaN on a control edge) and the edge's cost."""
+
+    states: np.ndarray
+    inputs: np.ndarray
+    costates: np.ndarray
+    cost: float
+
+
 def edge_trajectory(system: System, edge: dict, time_weight: float, dt: float
-                    ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Re-integrate one plan edge (`Plan.edges`) from its ``from`` state: states (k+1, n),
-    inputs (k+1, m) and cost. An extremal edge runs the state+costate ODEs from its costate
-    (u = u*, saturated where the system has limits); a control edge holds its input."""
+                    ) -> EdgeTrajectory:
+    """Re-integrate one plan edge (`Plan.edges`) from its ``from`` state. An extremal edge
+    runs the state+costate ODEs from its costate (u = u*, saturated where the system has
+    limits); a control edge holds its input."""
     n = system.n_states
     steps = max(1, round(edge["duration"] / dt))
     x0 = np.asarray(edge["from"], dtype=float)
     if edge.get("control") is not None:
         u = np.asarray(edge["control"], dtype=float)
         states = propagate(system, x0, u, dt, steps)
-        inputs = np.broadcast_to(u, (steps + 1, u.size))
         rate = float(system.hamiltonian(x0[None], np.zeros((1, n)), u[None], time_weight)[0])
-        return states, inputs, steps * dt * rate
+        return EdgeTrajectory(states, np.broadcast_to(u, (steps + 1, u.size)),
+                              np.full((steps + 1, n), np.nan), steps * dt * rate)
     traj = rollout(system, np.r_[x0, edge["costate"], 0.0], time_weight, dt, steps)
-    return (traj[:, :n], system.optimal_control(traj[:, :n], traj[:, n : 2 * n]),
-            float(traj[-1, 2 * n]))
+    return EdgeTrajectory(traj[:, :n], system.optimal_control(traj[:, :n], traj[:, n : 2 * n]),
+                          traj[:, n : 2 * n], float(traj[-1, 2 * n]))
+
+
+def _plan_fields(plan) -> tuple[list[dict], float, float]:
+    """(edges, time weight, step) of a `Plan` or of a plan file's content."""
+    if isinstance(plan, dict):
+        return plan["path"], float(plan["time_weight"]), float(plan["dt"])
+    return plan.edges(), float(plan.time_weight), float(plan.dt)
 
 
 def resimulate(system: System, plan) -> dict:
-    """Re-integrate a plan's path edge by edge (`edge_trajectory`), each from its stored
-    start node: the largest gap between an edge's end and the next node, the largest |cost|
-    difference of an edge, the largest |u| along the path, and the path's cost and duration
-    as re-simulated. A plan is what it claims when both gaps are at rounding level."""
+    """Re-integrate a plan's path (a `Plan` or a plan file's content) edge by edge
+    (`edge_trajectory`), each from its stored start node: the largest gap between an edge's
+    end and the next node, the largest |cost| difference of an edge, the largest |u| along
+    the path, and the path's cost and duration as re-simulated. A plan is what it claims when
+    both gaps are at rounding level."""
+    edges, w, dt = _plan_fields(plan)
     gap = cost_gap = u_abs = cost = duration = 0.0
-    for e in plan.edges():
-        states, inputs, c = edge_trajectory(system, e, plan.time_weight, plan.dt)
-        gap = max(gap, float(np.linalg.norm(states[-1] - np.asarray(e["to"]))))
-        cost_gap = max(cost_gap, abs(c - e["cost"]))
-        u_abs = max(u_abs, float(np.abs(inputs).max()))
-        cost += c
-        duration += (len(states) - 1) * plan.dt
+    for e in edges:
+        t = edge_trajectory(system, e, w, dt)
+        gap = max(gap, float(np.linalg.norm(t.states[-1] - np.asarray(e["to"]))))
+        cost_gap = max(cost_gap, abs(t.cost - e["cost"]))
+        u_abs = max(u_abs, float(np.abs(t.inputs).max()))
+        cost += t.cost
+        duration += (len(t.states) - 1) * dt
     return {"max_gap": gap, "max_cost_gap": cost_gap, "max_abs_u": u_abs, "path_cost": cost,
             "path_duration": duration}
+
+
+def sample_path(system: System, plan, dt: float | None = None) -> dict[str, np.ndarray]:
+    """Samples along a plan's path (a `Plan` or a plan file's content), re-simulated edge by
+    edge from each edge's stored start node at the plan's integration step: ``t`` (K,),
+    ``state`` (K, n), ``input`` (K, m), ``costate`` (K, n; NaN on random-control edges) and
+    ``edge`` (K,), the path edge each sample starts (the last sample is the path's end).
+    ``dt`` (default the plan's step) must be a whole multiple of the plan's step: the
+    samples are every such step of the one integration the plan was checked with."""
+    edges, w, step = _plan_fields(plan)
+    dt = step if dt is None else float(dt)
+    every = round(dt / step)
+    if every < 1 or abs(every * step - dt) > 1e-9 * max(1.0, dt):
+        raise ValueError(f"dt {dt}: give a whole multiple of the plan's integration step "
+                         f"{step}")
+    if not edges:
+        raise ValueError("the plan has no path to sample (it starts in the goal region or "
+                         "was not solved and found no node nearer the goal)")
+    parts = [edge_trajectory(system, e, w, step) for e in edges]
+    state = np.concatenate([p.states[:-1] for p in parts] + [parts[-1].states[-1:]])
+    inputs = np.concatenate([p.inputs[:-1] for p in parts] + [parts[-1].inputs[-1:]])
+    costate = np.concatenate([p.costates[:-1] for p in parts] + [parts[-1].costates[-1:]])
+    edge = np.concatenate([np.full(len(p.states) - 1, i) for i, p in enumerate(parts)]
+                          + [np.array([len(parts) - 1])])
+    keep = np.r_[np.arange(0, len(state) - 1, every), len(state) - 1]
+    keep = np.unique(keep)
+    return {"t": keep * step, "state": state[keep], "input": np.asarray(inputs)[keep],
+            "costate": costate[keep], "edge": edge[keep]}

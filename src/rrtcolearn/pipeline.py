@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from rrtcolearn import __version__, derive
-from rrtcolearn.config import Config, PlanConfig, read_toml, to_toml
+from rrtcolearn.config import Config, PlanConfig, read_toml, to_toml, validate
 from rrtcolearn.data.clean import CleaningResult, clean_data
 from rrtcolearn.data.dataset import Dataset
 from rrtcolearn.data.generate import (
@@ -638,6 +638,19 @@ def write_plan(p: Plan, path: str | Path) -> None:
     """Write the plan file (JSON, see README "The plan file") with its checksum."""
     write_checked_json(path, {"format": PLAN_FORMAT, "schema_version": PLAN_SCHEMA,
                               "package_version": __version__, **p.to_dict()})
+
+
+def plan_system(d: dict) -> System:
+    """The system a plan file's content (`read_plan`) was planned on, rebuilt from the
+    configuration the plan records (a registered name or module:attribute, its limits)."""
+    if not isinstance(d.get("config"), dict):
+        raise ConfigError("the plan file records no configuration: it cannot say which system "
+                          "to re-simulate it on")
+    system = build_system(validate(d["config"]))
+    if system.name != d.get("system"):
+        raise ConfigError(f"the plan is for system {d.get('system')!r}, its configuration "
+                          f"builds {system.name!r}")
+    return system
 
 
 def read_plan(path: str | Path) -> dict:

@@ -104,12 +104,11 @@ def resimulate_plan(model: pipeline.FittedModel, plan) -> dict:
     x = plan.start.copy()
     cost = duration = max_u = 0.0
     for e in plan.edges():
-        states, inputs, c = edge_trajectory(model.system, {**e, "from": x}, plan.time_weight,
-                                            plan.dt)
-        max_u = max(max_u, float(np.abs(inputs).max()))
-        cost += c
-        duration += (len(states) - 1) * plan.dt
-        x = states[-1]
+        t = edge_trajectory(model.system, {**e, "from": x}, plan.time_weight, plan.dt)
+        max_u = max(max_u, float(np.abs(t.inputs).max()))
+        cost += t.cost
+        duration += (len(t.states) - 1) * plan.dt
+        x = t.states[-1]
     gap = float(np.linalg.norm(x - plan.goal))
     return {"path_cost": cost, "path_duration": duration, "max_abs_u": max_u,
             "final_goal_distance": gap,

@@ -1,0 +1,77 @@
+"""Trajectory export: samples along a plan's path, re-simulated, as a library call and a
+command."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from tests.conftest import pendulum_edge
+from tests.test_cli import assert_one_line_error, invoke, tiny_run  # noqa: F401
+
+from rrtcolearn import pipeline
+from rrtcolearn.evaluate import sample_path
+
+
+@pytest.fixture(scope="module")
+def plan_dict(paper_model):
+    p = pipeline.plan(paper_model, [-np.pi, 0], [0, 0], 0.1, seed=0, time_limit=30)
+    assert p.solved
+    return json.loads(json.dumps(p.to_dict()))  # as a plan file holds it
+
+
+def test_samples_follow_the_edges(paper_model, plan_dict):
+    s = sample_path(paper_model.system, plan_dict)
+    d = plan_dict
+    steps = sum(round(e["duration"] / d["dt"]) for e in d["path"])
+    assert len(s["t"]) == steps + 1
+    np.testing.assert_allclose(np.diff(s["t"]), d["dt"])
+    np.testing.assert_allclose(s["state"][0], d["start"])
+    np.testing.assert_allclose(s["state"][-1], d["path"][-1]["to"], atol=1e-9)
+    # each edge's samples start at its stored node and follow an independent RK4
+    first = 0
+    for i, e in enumerate(d["path"]):
+        rows = np.flatnonzero(s["edge"][:-1] == i)
+        assert rows[0] == first
+        states, u, _ = pendulum_edge(e, d["time_weight"], d["dt"])
+        np.testing.assert_allclose(s["state"][rows], states[:-1], atol=1e-9)
+        np.testing.assert_allclose(s["input"][rows, 0], u[:-1], atol=1e-9)
+        np.testing.assert_allclose(s["costate"][rows[0]], e["costate"])
+        first = rows[-1] + 1
+
+
+def test_coarser_step_is_every_kth_sample(paper_model, plan_dict):
+    fine = sample_path(paper_model.system, plan_dict)
+    coarse = sample_path(paper_model.system, plan_dict, dt=0.05)
+    np.testing.assert_allclose(coarse["state"][:-1], fine["state"][:-1:5])
+    np.testing.assert_allclose(coarse["state"][-1], fine["state"][-1])
+    with pytest.raises(ValueError, match="whole multiple"):
+        sample_path(paper_model.system, plan_dict, dt=0.015)
+
+
+def test_export_command_writes_csv_and_npz(tiny_run):  # noqa: F811
+    plan_file = tiny_run / "plan.json"
+    d = json.loads(plan_file.read_text())
+    if not d["path"]:
+        pytest.skip("the tiny run found no path")
+    result = invoke("export", str(plan_file), "--dt", "0.02")
+    assert result.exit_code == 0, result.output
+    lines = (tiny_run / "plan.csv").read_text().splitlines()
+    assert lines[0] == "t,theta,omega,torque,lambda_theta,lambda_omega,edge"
+    rows = np.array([[float(v) for v in line.split(",")] for line in lines[1:]])
+    np.testing.assert_allclose(rows[0, 1:3], d["start"])
+    np.testing.assert_allclose(rows[-1, 1:3], d["path"][-1]["to"], atol=1e-9)
+    out = tiny_run / "samples.npz"
+    result = invoke("export", str(plan_file), "--format", "npz", "--out", str(out))
+    assert result.exit_code == 0, result.output
+    with np.load(out, allow_pickle=False) as z:
+        np.testing.assert_allclose(z["state"][-1], d["path"][-1]["to"], atol=1e-9)
+        assert str(z["columns"][0]) == "t"
+
+
+def test_export_bad_input_is_one_line(tiny_run, tmp_path):  # noqa: F811
+    plan_file = tiny_run / "plan.json"
+    assert_one_line_error(invoke("export", str(plan_file), "--format", "xml"), 2, "csv or npz")
+    assert_one_line_error(invoke("export", str(plan_file), "--dt", "-1"), 2, "positive")
+    assert_one_line_error(invoke("export", str(tmp_path / "none.json")), contains="")
