@@ -54,10 +54,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--sizes", default="100,1000,10000")
     ap.add_argument("--system", default=None, help="another system than the paper's "
                     "pendulum: its model with derived settings, the default planner only")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="configuration override for --system (e.g. plan.control_edges=true: "
+                    "random-control edges from the first iteration, one planner throughout)")
     args = ap.parse_args(argv)
     sizes = [int(v) for v in args.sizes.split(",")]
     if args.system is not None:
-        return _other_system(args.system, sizes, args.window)
+        return _other_system(args.system, sizes, args.window, tuple(args.set))
     system = make("pendulum")
     cfg = paper_config()  # the paper's pendulum model: the iteration cost of its planner
     data, _ = generate_data(system, 1, cfg.generate.n_simulations)
@@ -82,7 +85,8 @@ def main(argv: list[str] | None = None) -> dict:
     return out
 
 
-def _other_system(name: str, sizes: list[int], window: int) -> dict:
+def _other_system(name: str, sizes: list[int], window: int, overrides: tuple[str, ...] = ()
+                  ) -> dict:
     """The default planner's iteration cost on ``name``'s derived model (goal connections
     off: the goal is unreachable and every iteration an ordinary one)."""
     import tempfile
@@ -91,7 +95,7 @@ def _other_system(name: str, sizes: list[int], window: int) -> dict:
     from rrtcolearn.config import load_config
 
     cfg = load_config(overrides=[f'system.name="{name}"', "plan.goal_connect=false",
-                                 "plan.goal_funnel=0"])
+                                 "plan.goal_funnel=0", *overrides])
     with tempfile.TemporaryDirectory() as run_dir:
         pipeline.generate(cfg, run_dir)
         pipeline.clean(cfg, run_dir)
@@ -104,7 +108,8 @@ def _other_system(name: str, sizes: list[int], window: int) -> dict:
     planner.solve(probe, seed=1)
     ms = {s: round(1e3 * v, 4) for s, v in probe.result.items()}
     ratio = max(ms.values()) / min(ms.values())
-    print(f"{name}, derived settings: ms per iteration at "
+    print(f"{name}, derived settings{' ' + ' '.join(overrides) if overrides else ''}: "
+          "ms per iteration at "
           + ", ".join(f"{s} nodes {v}" for s, v in ms.items())
           + f"; largest/smallest {ratio:.2f} (target <= 2)")
     out = {name: {"ms_per_iteration": ms, "ratio": round(ratio, 3)}}
