@@ -752,8 +752,6 @@ class RRTCoLearn:
         if s.goal_funnel:
             search = self._build_funnel(rng, weight, s.goal_funnel)
         best_goal = float(prob.goal_distance(prob.start)[0])
-        goal_dist = np.full(256, np.inf)  # every node's distance to the goal region
-        goal_dist[0] = best_goal
         since_nearer = 0  # goal-biased iterations since a node came nearer the goal
         failed_shots = 0
         switched = {}  # when the automatic connections were switched on (iteration)
@@ -826,8 +824,6 @@ class RRTCoLearn:
                 best_goal, since_nearer, since_growth_nearer = d_goal, 0, 0
             if node == shifts.shape[0]:
                 shifts = np.concatenate([shifts, np.empty_like(shifts)])
-            goal_dist = _grown(goal_dist, node + 1, np.inf)
-            goal_dist[node] = d_goal
             shifts[node] = sys.wrap_shift(traj[-1:, :n])[0]
             if hit:
                 goal_node = node
