@@ -128,3 +128,52 @@ def test_export_of_control_edges(limited):
         else:
             assert np.isfinite(s["costate"][rows]).all()
     np.testing.assert_allclose(s["state"][-1], d["path"][-1]["to"], atol=1e-9)
+
+
+def test_control_edge_cost_with_two_weighted_asymmetric_inputs():
+    """Two inputs, R = diag(2, 0.5), asymmetric limits: every control edge's input lies in
+    the box and its cost is (w + u^T R u / 2) T, integrated independently."""
+    import sympy
+
+    from rrtcolearn.planning.problem import PlanningProblem
+    from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
+    from rrtcolearn.systems.symbolic import build_system
+
+    x, y, u1, u2 = sympy.symbols("x y u1 u2", real=True)
+    system = build_system(
+        "weighted_two_input", [x, y], [u1, u2], [sympy.sin(y) / 2, sympy.sin(x) / 2],
+        [[1, 0], [0, 1]], [[2, 0], [0, 0.5]], state_low=[-2.0, -2.0],
+        state_high=[2.0, 2.0], input_low=(-1.0, -0.5), input_high=(0.5, 1.0))
+    problem = PlanningProblem.create(system, [-1.0, -1.0], [1.0, 1.0], 1e-9)
+    planner = RRTCoLearn(problem, None, PlannerSettings(time_weight=0.7, control_edges=True,
+                                                        max_duration=1.0))
+    # the random-control expansion alone (it needs no learned model)
+    rng = np.random.default_rng(0)
+    tree_edges = [planner._control_edge(rng, np.array([-1.0, -1.0]), False) for _ in range(50)]
+    for edge in tree_edges:
+        assert edge is not None
+        traj, u, cost, steps, u_abs, _, _ = edge
+        assert -1.0 <= u[0] <= 0.5 and -0.5 <= u[1] <= 1.0
+        assert u_abs == np.abs(u).max()
+        assert cost == pytest.approx(steps * 0.01 * (0.7 + u[0] ** 2 + 0.25 * u[1] ** 2),
+                                     rel=1e-12)
+        np.testing.assert_allclose(traj, propagate(system, traj[0], u, 0.01, steps),
+                                   rtol=0, atol=1e-12)
+        assert np.all(np.abs(traj) <= 2.0)  # cut at the state constraints
+
+
+def test_control_edges_avoid_obstacles(limited):
+    block = {"type": "box", "low": [-2.0, 0.3], "high": [-1.2, 2.5]}
+    cfg = _with(limited, control_edges=True)
+    for seed in range(2):
+        p = pipeline.plan(limited, [-np.pi, 0], [0, 0], 0.1, seed=seed, config=cfg,
+                          obstacles=[block], time_limit=30)
+        assert p.solved
+        d = p.to_dict()
+        check_plan_file(d)
+        for e in d["path"]:
+            states, _, _ = pendulum_edge(e, d["time_weight"], d["dt"], U_MAX)
+            wrapped = states.copy()
+            wrapped[:, 0] -= 2 * np.pi * np.floor((states[:, 0] + 1.5 * np.pi) / (2 * np.pi))
+            inside = np.all((wrapped >= block["low"]) & (wrapped <= block["high"]), axis=1)
+            assert not inside.any()
