@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-_KERNELS = '''
+KERNELS = '''
 import math as _math
 
 import numba as _numba
@@ -145,7 +145,7 @@ def define_kernels(namespace: dict) -> None:
     The module must define compiled ``rhs(z, w, out)``, ``input_max_abs(z)`` and
     ``dynamics_jit(x, u, out)`` first.
     """
-    exec(compile(_KERNELS, namespace["__file__"], "exec"), namespace)
+    exec(compile(KERNELS, namespace["__file__"], "exec"), namespace)
 
 
 def rollout(system, z0: np.ndarray, w: float, dt: float, n_steps: int) -> np.ndarray:

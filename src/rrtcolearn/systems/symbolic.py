@@ -61,6 +61,7 @@ import sympy
 from sympy.printing.numpy import NumPyPrinter
 from sympy.printing.pycode import PythonCodePrinter
 
+from rrtcolearn.integrate import KERNELS
 from rrtcolearn.systems.base import System
 
 __all__ = [
@@ -415,6 +416,11 @@ def generate_source(der: Derivation, line: tuple | None = None) -> str:
         "",
         "The file name is the SHA-256 of this text, so a changed definition gets a new file.",
         '"""',
+        "",
+        # the kernels compiled into this module (`define_kernels`) live in integrate.py; their
+        # digest here makes a change to them a new file too, so numba's on-disk cache (keyed
+        # by this file and each function's own bytecode, not its callees') is never stale
+        f"# integrate kernels {hashlib.sha256(KERNELS.encode('utf-8')).hexdigest()[:16]}",
         "",
         "import math",
         "",
