@@ -140,6 +140,5 @@ def sample_path(system: System, plan, dt: float | None = None) -> dict[str, np.n
     edge = np.concatenate([np.full(len(p.states) - 1, i) for i, p in enumerate(parts)]
                           + [np.array([len(parts) - 1])])
     keep = np.r_[np.arange(0, len(state) - 1, every), len(state) - 1]
-    keep = np.unique(keep)
-    return {"t": keep * step, "state": state[keep], "input": np.asarray(inputs)[keep],
+    return {"t": keep * step, "state": state[keep], "input": inputs[keep],
             "costate": costate[keep], "edge": edge[keep]}

@@ -174,8 +174,6 @@ def _meta(config: Config, system: System, **extra) -> dict:
 
 def read_run_config(run_dir: str | Path) -> Config:
     """The resolved configuration a run directory's last step wrote (``config.toml``)."""
-    from rrtcolearn.config import validate
-
     return validate(read_toml(Path(run_dir) / "config.toml"))
 
 

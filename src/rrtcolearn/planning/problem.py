@@ -193,6 +193,16 @@ class PlanningProblem:
                 raise ProblemError(f"the goal sampler drew {x.tolist()}, outside the goal "
                                    "region")
 
+    @property
+    def constraint_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) (n,) of the state constraints, +-inf in the angle coordinates (the
+        box `within_bounds` tests, as arrays a compiled loop can compare against)."""
+        n = self.system.n_states
+        low, high = np.full(n, -np.inf), np.full(n, np.inf)
+        dims = self.system.bounded_dims
+        low[dims], high[dims] = self.state_low[dims], self.state_high[dims]
+        return low, high
+
     def within_bounds(self, x: np.ndarray) -> np.ndarray:
         """(N,) True where states (N, n) lie inside the state box in its non-angle coordinates.
 

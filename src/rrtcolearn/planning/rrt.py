@@ -258,11 +258,8 @@ class RRTCoLearn:
             self._control_box = (np.full(sys.n_inputs, -problem.u_max),
                                  np.full(sys.n_inputs, problem.u_max))
         # propagation stops at the state constraints (non-angle coordinates)
-        low, high = np.full(sys.n_states, -np.inf), np.full(sys.n_states, np.inf)
-        if self.settings.enforce_bounds:
-            dims = sys.bounded_dims
-            low[dims], high[dims] = problem.state_low[dims], problem.state_high[dims]
-        self._box = (low, high)
+        self._box = problem.constraint_box if self.settings.enforce_bounds else \
+            (np.full(sys.n_states, -np.inf), np.full(sys.n_states, np.inf))
         if self._control_box is not None:
             # the running cost w + u^T R u / 2 of a held input is H at lambda = 0; R read off
             # the system's H once (polarisation), so an edge's cost needs no call into it
