@@ -197,13 +197,15 @@ class PlanConfig(_Section):
         "sampling box); they may differ from generate.state_low, where the data's start "
         "states are drawn")
     state_high: list[float] | None = None
-    goal_bias: float = Field(0.2, ge=0, le=1)
+    goal_bias: float = Field(0.2, ge=0, le=1, description="share of iterations whose target "
+                             "is the goal (the paper does not state it)")
     sigma: float | None = Field(None, gt=0, description="steering noise around U's "
                                 "prediction; none: 1/8 of the parameters' mean range (the "
                                 "paper's pi/4)")
     sigma_goal: float | None = Field(None, gt=0, description="the same towards the goal; "
                                      "none: 1/4 of the range (the paper's pi/2)")
-    decimals: int = Field(2, ge=0, le=12)
+    decimals: int = Field(2, ge=0, le=12, description="steering parameters are rounded to "
+                          "this many decimals (the paper's Section 5.1)")
     time_limit: float | None = Field(10.0, gt=0)
     max_iterations: int | None = Field(None, ge=1)
     obstacles: list[ObstacleConfig] = Field(default_factory=list)

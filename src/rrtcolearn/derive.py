@@ -130,6 +130,17 @@ def extend_distance(system: System, max_state_distance: float) -> Choice:
                   f"{share:.1%} of the box lies within reach of its centre")
 
 
+def plan_choices(plan: Any, system: System, max_state_distance: float) -> list[Choice]:
+    """The derived planner settings that ``plan`` (a `config.PlanConfig` or the planner's
+    settings) leaves open (None): the steering noise, control samples and target
+    extension."""
+    sigma, sigma_goal = steering_sigmas(system)
+    wanted = {"sigma": lambda: sigma, "sigma_goal": lambda: sigma_goal,
+              "control_samples": lambda: control_samples(system),
+              "extend_distance": lambda: extend_distance(system, max_state_distance)}
+    return [make() for key, make in wanted.items() if getattr(plan, key) is None]
+
+
 def pilot_max_cost(system: System, *, time_weight: float, dt: float,
                    max_state_distance: float, max_duration: float,
                    seed: np.random.SeedSequence, u_max: float | None = None) -> Choice:

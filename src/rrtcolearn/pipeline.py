@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from rrtcolearn import __version__, derive
-from rrtcolearn.config import Config, PlanConfig, read_toml, to_toml, validate
+from rrtcolearn.config import Config, read_toml, to_toml, validate
 from rrtcolearn.data.clean import CleaningResult, clean_data
 from rrtcolearn.data.dataset import Dataset
 from rrtcolearn.data.generate import (
@@ -130,24 +130,8 @@ def resolve(config: Config, system: System | None = None) -> Config:
             seed=seed_stream(config.seed, "derive"), u_max=config.system.truncation_limit))
     if config.learn.learner is None:
         choices.append(derive.learner(system))
-    choices += _plan_choices(config.plan, system, g.max_state_distance)
+    choices += derive.plan_choices(config.plan, system, g.max_state_distance)
     return _record(config, choices)
-
-
-def _plan_choices(plan: PlanConfig, system: System, max_state_distance: float
-                  ) -> list[derive.Choice]:
-    """The derived planner settings that ``plan`` leaves open."""
-    sigma, sigma_goal = derive.steering_sigmas(system)
-    wanted = {"sigma": lambda: sigma, "sigma_goal": lambda: sigma_goal,
-              "control_samples": lambda: derive.control_samples(system),
-              "extend_distance": lambda: derive.extend_distance(system, max_state_distance)}
-    return [make() for key, make in wanted.items() if getattr(plan, key) is None]
-
-
-def _resolved_plan(plan: PlanConfig, system: System, max_state_distance: float
-                   ) -> PlanConfig:
-    choices = _plan_choices(plan, system, max_state_distance)
-    return plan.model_copy(update={c.key.split(".")[1]: c.value for c in choices})
 
 
 def _with_configured_limits(config: Config, system: System) -> System:
@@ -375,29 +359,13 @@ class FittedModel:
         self.config = resolve(self.config, self.system)
 
     def planner_settings(self, config: Config | None = None) -> PlannerSettings:
-        p = _resolved_plan((config or self.config).plan, self.system,
-                           self.max_state_distance)
-        # a query (x0, x1) farther apart than this cannot have m neighbours within the
-        # validity threshold, since every data pair is at most max_state_distance apart
-        # (in raw units: a weighted distance r is at most r / min(weight) raw)
-        reach = (self.max_state_distance + np.sqrt(2.0) * self.functions.validity.threshold
-                 / self.functions.n_neighbors) / float(self.system.metric_scale.min())
-        return PlannerSettings(
-            time_weight=self.config.system.time_weight, dt=self.config.generate.dt,
-            goal_bias=p.goal_bias, sigma=p.sigma, sigma_goal=p.sigma_goal,
-            decimals=p.decimals, max_duration=self.max_duration, reach=float(reach),
-            input_limit=p.input_limit,
-            extend_distance=p.extend_distance or np.inf,  # 0: off
-            metric_scale=self.system.metric_scale, control_samples=p.control_samples,
-            max_candidates=2**62 if p.max_candidates is None else p.max_candidates,
-            goal_connect=p.goal_connect,
-            # default: the data's longest weighted excursion, U has seen no longer segment
-            connect_reach=self.max_state_distance if p.connect_reach is None
-            else p.connect_reach,
-            goal_funnel=p.goal_funnel, funnel_radius=p.funnel_radius,
-            funnel_duration=p.funnel_duration, funnel_min_duration=p.funnel_min_duration,
-            funnel_max_cost=self.config.max_cost,
-            stall_iterations=p.stall_iterations, control_edges=p.control_edges)
+        """The planner's settings: the plan section of ``config`` (default: the model's
+        own) with the model's time weight, step, cost bound and data."""
+        own = self.config if config is None else \
+            self.config.model_copy(update={"plan": config.plan})
+        return PlannerSettings.from_config(own,
+                                           max_duration=self.max_duration,
+                                           data_reach=self.max_state_distance)
 
 
 def fit_functions(system: System, data: Dataset, config: Config, *,

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 from scipy.special import ndtr, ndtri
 
+from rrtcolearn import derive
+from rrtcolearn.config import Config, GenerateConfig, PlanConfig, SystemConfig
 from rrtcolearn.errors import ConfigError
 from rrtcolearn.integrate import propagate, rollout
 from rrtcolearn.learn.models import LearnedFunctions
@@ -17,82 +19,86 @@ from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.shooting import shoot
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan, PlannerData
+from rrtcolearn.systems.base import System
+
+
+def _default(section: type, name: str):
+    """The configuration's default for ``name`` in ``section``: its one definition."""
+    return section.model_fields[name].default
 
 
 @dataclass(frozen=True)
 class PlannerSettings:
-    """Online parameters (paper Section 5 and Experiments; goal_bias is not stated there).
+    """The planner's settings: the plan section of the configuration (`config.PlanConfig`)
+    plus what the planner takes from the data.
 
-    sigma / sigma_goal : standard deviation of the steering-parameter sampling around the
-        prediction, for ordinary targets / when the target is the goal (pi/4, pi/2).
-    decimals : steering parameters are rounded to this many decimals (Section 5.1).
-    max_duration : upper bound of the duration's truncated normal (the data's longest segment).
-    reach : a tree node farther than this (Euclidean) from the target cannot give a valid
-        query; such nodes are pruned before the neighbour query.
-    enforce_bounds : reject edges that leave the state box in a non-angle coordinate (the
-        state bounds OMPL planners are given too).
-    input_limit : an edge whose input exceeds the problem's ``u_max`` is rejected
-        ("reject") or cut before its first such state ("cut"; the prefix is feasible).
-    extend_distance : a random target farther than this from its nearest tree node is moved
-        towards that node to this distance (RRT's "extend"), so that in higher dimensions
-        targets stay within the data's reach; distances weighted by ``metric_scale``, angle
-        differences taken the short way round. Infinite: the paper's planner.
-    control_samples : steering draws per iteration; with more than one, the draw whose edge
-        comes nearest the target is kept and cut there (OMPL's directed control sampling);
-        one is the paper's planner.
-    max_candidates : only this many tree nodes nearest the target (weighted distance) are
-        queried for J; unlimited in the paper's planner.
-    goal_connect : in each goal-biased iteration, also try to steer exactly to the goal from
-        the nearest tree node not tried before, by shooting (`planning.shooting`) from U's
-        prediction; off in the paper's planner. None (auto): switched on once the learned
-        steering stalls near the goal (`CONNECT_AFTER` goal-biased iterations in a row
-        without a node nearer the goal).
-    connect_reach : nodes farther than this (weighted) from the goal are not tried: the data
-        hold no longer segments, so U's guess means nothing there.
-    goal_funnel : number of extremals integrated backwards from the goal at the start of
-        `solve` (`planning.funnel`); in each goal-biased iteration the untried node nearest a
-        funnel state (weighted) is steered to the goal from that state's extremal. 0 (off):
-        the paper's planner. None (auto): `AUTO_FUNNEL` extremals, built once shooting has
-        failed from `FUNNEL_AFTER` nodes (where the boundary value problem into the goal is
-        ill-conditioned, continuation along the funnel still connects).
-    funnel_radius : nodes farther than this (weighted) from every funnel state are not tried.
-    funnel_duration, funnel_max_cost : the funnel's extremals end after this time or cost.
-    funnel_min_duration : funnel states less than this time from the goal are dropped.
-    stall_iterations : stop when this many iterations in a row added no node (0: never); the
-        plan then says what rejected the candidates (`diagnose`).
-    control_edges : random-control expansion (`_control_edge`), for systems with an input
-        box (limits or a truncation bound): ordinary targets are expanded by a random input
-        from their nearest node, goal targets by the learned steering while a node lies
-        within ``connect_reach`` of them, and any learned iteration that adds no edge falls
-        back to a random input. False: the paper's planner. None (auto): switched on once
-        the learned steering stalls (`CONTROLS_AFTER` iterations in a row without a node
-        nearer the goal).
+    A field that shares its name with a `PlanConfig` field means what that field's
+    description says and has its default (one definition, there). None where the
+    configuration derives a value is derived here from the problem by the same rules
+    (`rrtcolearn.derive`, `resolved`). `from_config` builds the settings from a whole
+    configuration.
+
+    time_weight, dt : w of the running cost and the integration step (``system.time_weight``,
+        ``generate.dt``).
+    max_duration : upper bound of the duration's truncated normal (the data's longest
+        segment; by default ``generate.max_duration``).
+    data_reach : the data's longest weighted excursion (``generate.max_state_distance``):
+        bounds V's reach (`reach`), ``connect_reach`` and the derived ``extend_distance``.
+    funnel_max_cost : the funnel's extremals end at this cost (``generate.max_cost``).
+    metric_scale : weights of the state coordinates in planner distances (none: the
+        system's ``metric_scale``).
+    max_resample : steering draws per candidate when a draw gives no costate.
+    enforce_bounds : edges stop at the state constraints (the bounds OMPL planners are
+        given too).
     """
 
-    time_weight: float = 1.0
-    dt: float = 0.01
-    goal_bias: float = 0.05
-    sigma: float = np.pi / 4
-    sigma_goal: float = np.pi / 2
-    decimals: int = 2
-    max_duration: float = 2.0
-    reach: float = np.inf
+    time_weight: float = _default(SystemConfig, "time_weight")
+    dt: float = _default(GenerateConfig, "dt")
+    max_duration: float = _default(GenerateConfig, "max_duration")
+    data_reach: float = _default(GenerateConfig, "max_state_distance")
+    funnel_max_cost: float = np.inf
+    metric_scale: np.ndarray | None = None
     max_resample: int = 10
     enforce_bounds: bool = True
-    input_limit: str = "reject"
-    extend_distance: float = np.inf
-    metric_scale: np.ndarray | None = None
-    control_samples: int = 1
-    max_candidates: int = 2**62
-    goal_connect: bool | None = False
-    connect_reach: float = np.inf
-    goal_funnel: int | None = 0
-    funnel_radius: float = 0.3
-    funnel_duration: float = 3.0
-    funnel_min_duration: float = 0.0
-    funnel_max_cost: float = np.inf
-    stall_iterations: int = 10_000
-    control_edges: bool | None = False
+    goal_bias: float = _default(PlanConfig, "goal_bias")
+    sigma: float | None = _default(PlanConfig, "sigma")
+    sigma_goal: float | None = _default(PlanConfig, "sigma_goal")
+    decimals: int = _default(PlanConfig, "decimals")
+    input_limit: str = _default(PlanConfig, "input_limit")
+    extend_distance: float | None = _default(PlanConfig, "extend_distance")
+    control_samples: int | None = _default(PlanConfig, "control_samples")
+    max_candidates: int | None = _default(PlanConfig, "max_candidates")
+    goal_connect: bool | None = _default(PlanConfig, "goal_connect")
+    connect_reach: float | None = _default(PlanConfig, "connect_reach")
+    goal_funnel: int | None = _default(PlanConfig, "goal_funnel")
+    funnel_radius: float = _default(PlanConfig, "funnel_radius")
+    funnel_duration: float = _default(PlanConfig, "funnel_duration")
+    funnel_min_duration: float = _default(PlanConfig, "funnel_min_duration")
+    stall_iterations: int = _default(PlanConfig, "stall_iterations")
+    control_edges: bool | None = _default(PlanConfig, "control_edges")
+
+    @classmethod
+    def from_config(cls, config: Config, **data) -> PlannerSettings:
+        """The settings of ``config`` (its plan section, w, dt and cost bound), with
+        ``data`` (e.g. ``max_duration``, ``data_reach``) from the fitted model."""
+        plan = {f.name: getattr(config.plan, f.name) for f in fields(cls)
+                if f.name in PlanConfig.model_fields}
+        g = config.generate
+        own = {"time_weight": config.system.time_weight, "dt": g.dt,
+               "max_duration": g.max_duration, "data_reach": g.max_state_distance,
+               "funnel_max_cost": np.inf if g.max_cost is None else g.max_cost}
+        return cls(**{**own, **plan, **data})
+
+    def resolved(self, system: System) -> PlannerSettings:
+        """Every None that the configuration leaves to the library, derived for ``system``
+        (`derive.plan_choices`, the rules the run records in ``config.derived``)."""
+        derived = {c.key.split(".")[1]: c.value
+                   for c in derive.plan_choices(self, system, self.data_reach)}
+        if self.connect_reach is None:
+            derived["connect_reach"] = self.data_reach
+        if self.metric_scale is None:
+            derived["metric_scale"] = system.metric_scale
+        return replace(self, **derived)
 
 
 # what became of an iteration: no node within reach of the target, V rejected every
@@ -235,10 +241,16 @@ class RRTCoLearn:
                  settings: PlannerSettings | None = None):
         self.problem = problem
         self.model = model
-        self.settings = settings or PlannerSettings()
+        sys = problem.system
+        self.settings = (settings or PlannerSettings()).resolved(sys)
+        # a query (x0, x1) farther apart than this cannot have m neighbours within V's
+        # threshold, since every data pair is at most data_reach apart (weighted; a weighted
+        # distance r is at most r / min(weight) raw)
+        self._reach = np.inf if model is None else float(
+            (self.settings.data_reach + np.sqrt(2.0) * model.validity.threshold
+             / model.n_neighbors) / float(np.min(self.settings.metric_scale)))
         self._rejected = "no_costate"  # why the last draw gave no edge (OUTCOMES)
         self._indices: tuple[NodeIndex, ...] = ()  # kept up to date by _add_edge
-        sys = problem.system
         explicit = self.settings.goal_connect is True or bool(self.settings.goal_funnel)
         if explicit and sys.params_from_costate is None:
             raise ConfigError(f"system {sys.name!r} has no params_from_costate: the goal "
@@ -707,7 +719,7 @@ class RRTCoLearn:
         rng = np.random.default_rng(seed)
         n = sys.n_states
         tree = PlannerData(prob.start, sys.n_params, n_inputs=sys.n_inputs)
-        weight = np.ones(n) if s.metric_scale is None else np.asarray(s.metric_scale)
+        weight = np.asarray(s.metric_scale, dtype=np.float64)
         # tree nodes in nearest-neighbour structures: candidate parents by plain (weighted)
         # distance, and by distance with angles modulo a turn (extend, the wrapped goal)
         angle_low = np.full(n, np.nan)
@@ -717,17 +729,17 @@ class RRTCoLearn:
         self._indices = (plain, wrapped) if wrapped is not plain else (plain,)
         for index in self._indices:
             index.add(prob.start)
-        bounded = s.max_candidates < 2**62
+        bounded = s.max_candidates is not None
         # learning-query start of every node: its state shifted by whole turns into the box
         shifts = np.empty((256, n))
         shifts[0] = sys.wrap_shift(prob.start[None])[0]
-        reach2 = s.reach * s.reach
+        reach2 = self._reach * self._reach
         lam = np.empty(n)
         z0 = np.empty(2 * n + 1)
         goal_node = -1
         tried = np.zeros(256, dtype=bool)  # nodes the goal connection has started from
         connection = None  # which connection made the last edge, if one did
-        extend = np.isfinite(s.extend_distance)
+        extend = bool(s.extend_distance)  # 0: off
         # random-control expansions (`_control_edge`): only with a box to draw inputs from
         controls = self._control_box is not None and s.control_edges is not False
         exploring = controls and s.control_edges is True
