@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import re
 import signal
 import sys
@@ -148,19 +147,24 @@ def _config(config: Path | None, seed: int | None, overrides: list[str] | None,
     base = {}
     if run_dir is not None and (run_dir / "config.toml").is_file():
         base = read_toml(run_dir / "config.toml")
-    overrides = list(overrides or [])
-    if system is not None:
-        overrides.append(f"system.name={json.dumps(system)}")
-    if u_max is not None:
-        overrides.append(f"system.u_max={u_max!r}")
-    if offline_budget is not None:
-        overrides.append(f"generate.offline_budget={offline_budget!r}")
-    cfg = add_obstacles(load_config(config, overrides, base=base), list(obstacles or []))
+    options = _options({("system", "name"): system, ("system", "u_max"): u_max,
+                        ("generate", "offline_budget"): offline_budget})
+    cfg = add_obstacles(load_config(config, overrides, base=base, options=options),
+                        list(obstacles or []))
     if seed is not None:
         if seed < 0:
             raise ConfigError("--seed must be a non-negative integer")
         cfg = cfg.model_copy(update={"seed": seed})
     return cfg
+
+
+def _options(given: dict[tuple[str, str], object]) -> dict[str, dict[str, object]]:
+    """The typed command-line options that were given, nested by section as in a file."""
+    nested: dict[str, dict[str, object]] = {}
+    for (section, key), value in given.items():
+        if value is not None:
+            nested.setdefault(section, {})[key] = value
+    return nested
 
 
 def _run_name(cfg: Config) -> str:
@@ -363,14 +367,12 @@ def plan(
         run_dir = model if model is not None else Path("runs") / _run_name(
             Config() if system_name is None else Config().model_copy(update={
                 "system": Config().system.model_copy(update={"name": system_name})}))
-        overrides = list(set_ or [])
-        for key, value in (("start", _parse_state(start, "--start")),
-                           ("goal", _parse_state(goal, "--goal")),
-                           ("goal_tolerance", goal_tolerance), ("time_limit", time_limit),
-                           ("max_iterations", max_iterations)):
-            if value is not None:
-                overrides.append(f"plan.{key}={value!r}" if not isinstance(value, list)
-                                 else f"plan.{key}=[{', '.join(map(repr, value))}]")
+        options = _options({("plan", "start"): _parse_state(start, "--start"),
+                            ("plan", "goal"): _parse_state(goal, "--goal"),
+                            ("plan", "goal_tolerance"): goal_tolerance,
+                            ("plan", "time_limit"): time_limit,
+                            ("plan", "max_iterations"): max_iterations,
+                            ("system", "u_max"): u_max})
         # validate everything before the model is loaded: the query, the config, the files
         _, model_cfg, system = pipeline.read_model_info(run_dir)
         if system_name is not None and system_name != model_cfg.system.name:
@@ -378,12 +380,10 @@ def plan(
                               f"{model_cfg.system.name!r}")
         if seed is not None and seed < 0:
             raise ConfigError("--seed must be a non-negative integer")
-        if u_max is not None:
-            overrides.append(f"system.u_max={u_max!r}")
         # the model's own configuration is the base; only its plan section may change here
-        cfg = load_config(config, overrides, base={
+        cfg = load_config(config, list(set_ or []), base={
             "plan": model_cfg.plan.model_dump(),
-            "system": model_cfg.system.model_dump(exclude_none=True)})
+            "system": model_cfg.system.model_dump(exclude_none=True)}, options=options)
         cfg = add_obstacles(cfg, list(obstacle or []))
         start_x, goal_x = pipeline.query_states(cfg, system)
         PlanningProblem.create(system, start_x, goal_x, cfg.plan.goal_tolerance,

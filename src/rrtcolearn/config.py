@@ -445,13 +445,16 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None,
-                base: dict[str, Any] | None = None) -> Config:
+                base: dict[str, Any] | None = None,
+                options: dict[str, Any] | None = None) -> Config:
     """Defaults, then the system's recommended configuration, then ``base``, then the TOML
-    file, then ``--set`` overrides; validated."""
+    file, then ``--set`` overrides, then ``options`` (nested like the file: the command
+    line's typed options); validated."""
     data: dict[str, Any] = copy.deepcopy(base or {})
     if path is not None:
         _merge(data, read_toml(path))
     apply_overrides(data, list(overrides or []))
+    _merge(data, copy.deepcopy(options or {}))
     return validate(with_system_defaults(data))
 
 
