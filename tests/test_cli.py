@@ -88,12 +88,12 @@ def test_missing_and_corrupted_run_directories(tiny_run, tmp_path):
     assert_one_line_error(result, contains="not found")
     broken = tmp_path / "broken"
     broken.mkdir()
-    for name in ("model.json", "cleaned.npz", "config.toml"):
+    for name in ("model.json", "functions.npz", "config.toml"):
         (broken / name).write_bytes((tiny_run / name).read_bytes())
-    raw = (broken / "cleaned.npz").read_bytes()
-    (broken / "cleaned.npz").write_bytes(raw[: len(raw) // 3])
+    raw = (broken / "functions.npz").read_bytes()
+    (broken / "functions.npz").write_bytes(raw[: len(raw) // 3])
     result = invoke("plan", "--model", str(broken), "--out", str(tmp_path / "p.json"))
-    assert_one_line_error(result, contains="cleaned.npz")
+    assert_one_line_error(result, contains="functions.npz")
     (broken / "model.json").write_text("{not json")
     result = invoke("plan", "--model", str(broken), "--out", str(tmp_path / "p.json"))
     assert_one_line_error(result, contains="JSON")
@@ -227,7 +227,7 @@ def test_run_works_for_every_shipped_system(name, tmp_path):
     assert "n_simulations = 2000" in cfg  # the user's setting wins over the recommended one
     if name == "cartpole":  # ... which applies where the user is silent
         assert 'name = "cartpole-swingup"' in cfg and "control_samples = 16" in cfg
-        assert 'learner = "mlp"' in cfg and (out / "networks.npz").is_file()
+        assert 'learner = "mlp"' in cfg and (out / "functions.npz").is_file()
 
 
 def test_run_name_follows_the_system():

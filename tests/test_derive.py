@@ -80,8 +80,8 @@ def test_run_records_what_it_derived(tmp_path):
     assert "generate.n_simulations" not in saved["derived"]
     for key in ("generate.max_cost", "learn.validity_threshold", "plan.sigma"):
         assert key in saved["derived"]
-    assert saved["learn"]["validity_threshold"] == model.functions.validity.threshold
-    assert model.config.learn.validity_threshold == model.functions.validity.threshold
+    assert saved["learn"]["validity_threshold"] == model.functions.validity_.threshold
+    assert model.config.learn.validity_threshold == model.functions.validity_.threshold
 
 
 def test_planner_switches_the_goal_connection_on_when_it_stalls(paper_model):

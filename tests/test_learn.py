@@ -68,7 +68,13 @@ def test_fit_contract_returns_self_and_refuses_too_few_samples():
     assert m.fit(X, np.ones(5)) is m
     with pytest.raises(ValueError, match="at least 3"):
         CostToGoRegressor(n_neighbors=3).fit(X[:2], np.ones(2))
-    f = LearnedFunctions.fit(X, np.ones(5), np.ones((5, 2)), validity_threshold=100.0)
+    from rrtcolearn.data.dataset import Dataset
+    from rrtcolearn.systems import make
+
+    data = Dataset(X[:, :2], X[:, 2:], np.ones(5), np.ones((5, 1)), np.ones(5), X[:, :2],
+                   np.arange(5))
+    f = LearnedFunctions(validity_threshold=100.0, periodic=False)
+    assert f.fit(data, make("pendulum")) is f
     j, u, v = f.query(X[:2])
     assert j.shape == (2,) and u.shape == (2, 2) and v.all()
 
@@ -84,3 +90,27 @@ def test_circular_mean_stays_below_the_domain_end():
     reg = SteeringRegressor(3, circular=(True,), low=(low,), high=(high,)).fit(np.zeros((3, 1)), y)
     out = reg.predict(np.zeros((1, 1)))
     assert low <= out[0, 0] < high
+
+
+def test_learned_functions_save_and_load_without_pickle(tmp_path):
+    from rrtcolearn.data.generate import generate_data
+    from rrtcolearn.errors import ArtefactError
+    from rrtcolearn.systems import make
+
+    system = make("pendulum")
+    data, _ = generate_data(system, 5, 400, max_cost=2.0, max_state_distance=1.5)
+    f = LearnedFunctions(validity_threshold=0.8).fit(data, system)
+    # scikit-learn's contract: hyper-parameters untouched, learned state in *_ attributes
+    assert f.validity_threshold == 0.8 and f.learner == "knn" and f.networks_ is None
+    assert f.max_duration_ == float(data.duration.max())
+    f.save(tmp_path / "f.npz", {"note": "test"})
+    g, meta = LearnedFunctions.load(tmp_path / "f.npz")
+    assert meta["note"] == "test"
+    Q = np.hstack([data.x0[:50], data.x1[::-1][:50]])
+    for a, b in zip(f.query(Q), g.query(Q), strict=True):
+        np.testing.assert_array_equal(a, b)
+    raw = bytearray((tmp_path / "f.npz").read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    (tmp_path / "g.npz").write_bytes(bytes(raw))
+    with pytest.raises(ArtefactError):
+        LearnedFunctions.load(tmp_path / "g.npz")

@@ -34,14 +34,14 @@ def _held_out(model):
 def test_networks_answer_j_and_u_and_knn_answers_v(mlp_run):
     _, _, model = mlp_run
     f = model.functions
-    assert f.networks is not None
+    assert f.networks_ is not None
     X = _held_out(model)
     cost, steer, valid = f.query(X)
-    j_net, u_net = f.networks
+    j_net, u_net = f.networks_
     np.testing.assert_array_equal(cost, np.clip(j_net.predict(X), 1e-5, 1e5))
     np.testing.assert_array_equal(steer, u_net.predict(X))
-    dist, _ = f.cost_to_go.kneighbors(X * f.input_scale)
-    np.testing.assert_array_equal(valid, dist.sum(axis=1) <= f.validity.threshold)
+    dist, _ = f.cost_to_go_.kneighbors(X * f.input_scale_)
+    np.testing.assert_array_equal(valid, dist.sum(axis=1) <= f.validity_.threshold)
     # the planner's path gives the same J for the rows V accepts
     rows, cost_v, _ = f.query_valid(X)
     np.testing.assert_array_equal(rows, np.flatnonzero(valid))
@@ -56,7 +56,7 @@ def test_networks_answer_j_and_u_and_knn_answers_v(mlp_run):
 
 def test_load_model_reads_the_saved_networks_bit_identically(mlp_run):
     _, run_dir, model = mlp_run
-    assert (run_dir / pipeline.NETWORKS_FILE).is_file()
+    assert (run_dir / pipeline.FUNCTIONS_FILE).is_file()
     loaded = pipeline.load_model(run_dir)
     X = _held_out(model)
     for a, b in zip(model.functions.query(X), loaded.functions.query(X), strict=True):
@@ -67,24 +67,24 @@ def test_same_seed_same_networks(mlp_run, tmp_path):
     cfg, run_dir, model = mlp_run
     (tmp_path / pipeline.CLEANED_FILE).write_bytes((run_dir / pipeline.CLEANED_FILE).read_bytes())
     again = pipeline.fit(cfg, tmp_path)
-    for a, b in zip(model.functions.networks, again.functions.networks, strict=True):
+    for a, b in zip(model.functions.networks_, again.functions.networks_, strict=True):
         for k, v in a.to_arrays().items():
             assert np.array_equal(v, b.to_arrays()[k]), k
     digests = {r["file"]: r["sha256"] for r in pipeline.inspect_run(run_dir)}
     again_digests = {r["file"]: r["sha256"] for r in pipeline.inspect_run(tmp_path)}
-    assert again_digests[pipeline.NETWORKS_FILE] == digests[pipeline.NETWORKS_FILE]
+    assert again_digests[pipeline.FUNCTIONS_FILE] == digests[pipeline.FUNCTIONS_FILE]
 
 
-def test_damaged_or_foreign_network_file_is_refused(mlp_run, tmp_path):
+def test_damaged_or_missing_functions_file_is_refused(mlp_run, tmp_path):
     _, run_dir, _ = mlp_run
     for name in (pipeline.MODEL_FILE, pipeline.CLEANED_FILE, "config.toml"):
         (tmp_path / name).write_bytes((run_dir / name).read_bytes())
-    data = bytearray((run_dir / pipeline.NETWORKS_FILE).read_bytes())
+    data = bytearray((run_dir / pipeline.FUNCTIONS_FILE).read_bytes())
     data[len(data) // 2] ^= 0xFF
-    (tmp_path / pipeline.NETWORKS_FILE).write_bytes(bytes(data))
+    (tmp_path / pipeline.FUNCTIONS_FILE).write_bytes(bytes(data))
     with pytest.raises(ArtefactError):
         pipeline.load_model(tmp_path)
-    (tmp_path / pipeline.NETWORKS_FILE).unlink()
+    (tmp_path / pipeline.FUNCTIONS_FILE).unlink()
     with pytest.raises(ArtefactError, match="not found"):
         pipeline.load_model(tmp_path)
 

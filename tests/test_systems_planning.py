@@ -80,18 +80,20 @@ def test_pendulum_distances_are_the_papers():
 
 
 def test_queries_near_an_angle_seam_find_neighbours_across_it():
-    # angle coordinate 0 in [-pi, pi); data just above -pi, query just below +pi: one turn
-    # apart, so the same problem shifted by 2*pi
+    # the pendulum's angle coordinate 0 in [-3pi/2, pi/2); data just above -3pi/2, query just
+    # below pi/2: one turn apart, so the same problem shifted by 2*pi
+    from rrtcolearn.data.dataset import Dataset
+
     rng = np.random.default_rng(0)
-    x0 = np.c_[-np.pi + 0.01 + 0.02 * rng.random(50), rng.random(50)]
+    x0 = np.c_[-1.5 * np.pi + 0.01 + 0.02 * rng.random(50), rng.random(50)]
     x1 = x0 + 0.1
-    X = np.hstack([x0, x1])
-    cost, targets = np.ones(50), np.ones((50, 2))
-    query = np.array([[np.pi - 0.02, 0.5, np.pi + 0.08, 0.6]])
+    data = Dataset(x0, x1, np.ones(50), np.ones((50, 1)), np.ones(50), x0, np.arange(50))
+    query = np.array([[0.5 * np.pi - 0.02, 0.5, 0.5 * np.pi + 0.08, 0.6]])
+    system = make("pendulum")
     kwargs = dict(n_neighbors=3, validity_threshold=0.5)
-    flat = LearnedFunctions.fit(X, cost, targets, **kwargs)
+    flat = LearnedFunctions(periodic=False, **kwargs).fit(data, system)
     assert not flat.query(query)[2][0]
-    wrapped = LearnedFunctions.fit(X, cost, targets, periodic=((0, -np.pi, np.pi),), **kwargs)
+    wrapped = LearnedFunctions(**kwargs).fit(data, system)
     assert wrapped.query(query)[2][0]
     rows, _, idx = wrapped.query_valid(query)
     assert rows.tolist() == [0]

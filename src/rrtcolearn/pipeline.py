@@ -41,12 +41,11 @@ from rrtcolearn.data.store import (
     load_arrays,
     load_dataset,
     read_json,
-    save_arrays,
     save_dataset,
     write_json,
 )
 from rrtcolearn.errors import ArtefactError, ConfigError, EnvironmentProblem
-from rrtcolearn.learn.models import LearnedFunctions
+from rrtcolearn.learn.models import FUNCTIONS_FORMAT, LearnedFunctions
 from rrtcolearn.parallel import ExecutionSettings, map_tasks
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
@@ -59,9 +58,8 @@ DATASET_FILE = "dataset.npz"
 CLEANED_FILE = "cleaned.npz"
 MODEL_FILE = "model.json"
 MODEL_FORMAT = "rrtcolearn.model"
-MODEL_SCHEMA = 1
-NETWORKS_FILE = "networks.npz"
-NETWORKS_FORMAT = "rrtcolearn.networks"
+MODEL_SCHEMA = 2
+FUNCTIONS_FILE = "functions.npz"
 
 _STREAMS = {"generate": 0, "clean": 1, "plan": 2, "derive": 3}
 
@@ -350,11 +348,11 @@ class FittedModel:
         learn = self.config.learn
         if learn.validity_threshold is None:
             self.config = _record(self.config, [derive.Choice(
-                "learn.validity_threshold", float(self.functions.validity.threshold),
+                "learn.validity_threshold", float(self.functions.validity_.threshold),
                 "the fitted classifier's")])
         if learn.learner is None:
             self.config = _record(self.config, [derive.Choice(
-                "learn.learner", "mlp" if self.functions.networks is not None else "knn",
+                "learn.learner", self.functions.learner,
                 "the fitted learner")])
         self.config = resolve(self.config, self.system)
 
@@ -368,28 +366,21 @@ class FittedModel:
                                            data_reach=self.max_state_distance)
 
 
-def fit_functions(system: System, data: Dataset, config: Config, *,
-                  train_networks: bool = True) -> LearnedFunctions:
-    """Fit J, U and V on a (cleaned) dataset with the configured learner parameters
-    (with ``learn.learner = "mlp"`` and ``train_networks``, also the J and U networks)."""
+def fit_functions(system: System, data: Dataset, config: Config) -> LearnedFunctions:
+    """J, U and V fitted on a (cleaned) dataset with the configured learner (what
+    ``config.learn`` leaves open derived first)."""
     config = _record(config, _learn_choices(system, data, config))
     learn = config.learn
-    functions = LearnedFunctions.fit(
-        data.inputs, data.cost, np.hstack([data.params, data.duration[:, None]]),
+    functions = LearnedFunctions(
         n_neighbors=learn.n_neighbors, cost_bounds=(learn.cost_lower, learn.cost_upper),
-        validity_threshold=learn.validity_threshold, circular=system.param_circular,
-        low=tuple(system.param_low), high=tuple(system.param_high),
-        input_scale=system.metric_scale, periodic=_periodic(system, config))
-    if learn.learner == "mlp" and train_networks:
-        try:
-            functions.fit_networks(
-                data.inputs, data.cost, np.hstack([data.params, data.duration[:, None]]),
-                hidden=tuple(learn.mlp_hidden), max_iter=learn.mlp_max_iter,
-                max_samples=learn.mlp_max_samples,
-                seed=int(np.random.SeedSequence(config.seed).generate_state(1)[0] >> 1))
-        except ImportError as exc:
-            raise EnvironmentProblem(str(exc)) from None
-    return functions
+        validity_threshold=learn.validity_threshold, learner=learn.learner,
+        periodic=learn.periodic, mlp_hidden=tuple(learn.mlp_hidden),
+        mlp_max_iter=learn.mlp_max_iter, mlp_max_samples=learn.mlp_max_samples,
+        seed=int(np.random.SeedSequence(config.seed).generate_state(1)[0] >> 1))
+    try:
+        return functions.fit(data, system)
+    except ImportError as exc:
+        raise EnvironmentProblem(str(exc)) from None
 
 
 def _learn_choices(system: System, data: Dataset, config: Config) -> list[derive.Choice]:
@@ -404,44 +395,14 @@ def _learn_choices(system: System, data: Dataset, config: Config) -> list[derive
     choices = [] if learn.learner is not None else [derive.learner(system)]
     if learn.validity_threshold is None:
         try:
+            periodic = tuple((j, float(system.state_low[j]), float(system.state_high[j]))
+                             for j in system.angle_dims) if learn.periodic else ()
             choices.append(derive.validity_threshold(
                 data.inputs, data.simulation, system.metric_scale, learn.n_neighbors,
-                seed_stream(config.seed, "derive"), _periodic(system, config)))
+                seed_stream(config.seed, "derive"), periodic))
         except ValueError as exc:
             raise ArtefactError(str(exc)) from None
     return choices
-
-
-def _periodic(system: System, config: Config) -> tuple[tuple[int, float, float], ...]:
-    """Angle coordinates as (j, low, high) for the learners, when they wrap."""
-    if not config.learn.periodic:
-        return ()
-    return tuple((j, float(system.state_low[j]), float(system.state_high[j]))
-                 for j in system.angle_dims)
-
-
-def _save_networks(functions: LearnedFunctions, path: Path, meta: dict) -> str | None:
-    """Write the J and U networks' arrays (prefixed ``J.`` and ``U.``); their digest."""
-    if functions.networks is None:
-        return None
-    arrays = {f"{p}.{k}": v for p, net in zip("JU", functions.networks, strict=True)
-              for k, v in net.to_arrays().items()}
-    return save_arrays(path, NETWORKS_FORMAT, arrays, meta)
-
-
-def _load_networks(path: Path, sha256: str | None) -> tuple:
-    """The J and U networks saved by `fit`, checked against the model file's digest."""
-    from rrtcolearn.learn.mlp import NeuralRegressor
-
-    arrays, meta = load_arrays(path, NETWORKS_FORMAT)
-    if meta.get("sha256") != sha256:
-        raise ArtefactError(f"{path} is not the network file the model was fitted with "
-                            f"(checksum differs); rerun `rrtcolearn fit`")
-    try:
-        return tuple(NeuralRegressor.from_arrays(
-            {k[2:]: v for k, v in arrays.items() if k.startswith(f"{p}.")}) for p in "JU")
-    except ValueError as exc:
-        raise ArtefactError(f"{path}: {exc}") from None
 
 
 def fit(config: Config, run_dir: str | Path) -> FittedModel:
@@ -454,8 +415,8 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
     config = _record(config, _learn_choices(system, data, config))
     functions = fit_functions(system, data, config)
     save_config(config, run_dir)
-    networks_sha = _save_networks(functions, run_dir / NETWORKS_FILE,
-                                  {"system": system.name, "cleaned_sha256": meta["sha256"]})
+    functions_sha = functions.save(run_dir / FUNCTIONS_FILE,
+                                   {"system": system.name, "cleaned_sha256": meta["sha256"]})
     write_checked_json(run_dir / MODEL_FILE, {
         "format": MODEL_FORMAT,
         "schema_version": MODEL_SCHEMA,
@@ -464,12 +425,12 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
         "cleaned_file": CLEANED_FILE,
         "cleaned_sha256": meta["sha256"],
         "points": len(data),
-        "max_duration": float(data.duration.max()),
-        "networks_file": None if networks_sha is None else NETWORKS_FILE,
-        "networks_sha256": networks_sha,
+        "max_duration": functions.max_duration_,
+        "functions_file": FUNCTIONS_FILE,
+        "functions_sha256": functions_sha,
         "config": config.model_dump(mode="json"),
     })
-    return FittedModel(system, config, functions, float(data.duration.max()),
+    return FittedModel(system, config, functions, functions.max_duration_,
                        config.generate.max_state_distance)
 
 
@@ -515,15 +476,11 @@ def load_model(run_dir: str | Path) -> FittedModel:
     """Rebuild a fitted model from a run directory, checking that its files belong together."""
     run_dir = Path(run_dir)
     info, config, system = read_model_info(run_dir)
-    data, meta = load_dataset(run_dir / CLEANED_FILE, system.name)
-    if meta["sha256"] != info.get("cleaned_sha256"):
-        raise ArtefactError(f"{run_dir / CLEANED_FILE} is not the dataset the model was "
-                            f"fitted on (checksum differs); rerun `rrtcolearn fit`")
-    functions = fit_functions(system, data, config, train_networks=False)
-    if config.learn.learner == "mlp":
-        functions.networks = _load_networks(run_dir / NETWORKS_FILE,
-                                            info.get("networks_sha256"))
-    return FittedModel(system, config, functions, float(data.duration.max()),
+    functions, meta = LearnedFunctions.load(run_dir / FUNCTIONS_FILE)
+    if meta.get("sha256") != info.get("functions_sha256"):
+        raise ArtefactError(f"{run_dir / FUNCTIONS_FILE} is not the file the model was "
+                            f"fitted with (checksum differs); rerun `rrtcolearn fit`")
+    return FittedModel(system, config, functions, functions.max_duration_,
                        config.generate.max_state_distance)
 
 
@@ -640,13 +597,13 @@ def content_digest(path: str | Path) -> tuple[str, str]:
     """(kind, SHA-256) of an artefact's content, independent of chunking and file layout.
 
     Datasets: the expanded arrays (x0, x1, cost, params, duration, costate, simulation) in
-    name order; network weights: their arrays; JSON and TOML: the canonical JSON of their
+    name order; fitted functions: their arrays; JSON and TOML: the canonical JSON of their
     content without timing fields; anything else: the file's bytes.
     """
     path = Path(path)
-    if path.name == NETWORKS_FILE:
-        arrays, _ = load_arrays(path, NETWORKS_FORMAT)
-        return "weights", digest(arrays)
+    if path.name == FUNCTIONS_FILE:
+        arrays, _ = load_arrays(path, FUNCTIONS_FORMAT)
+        return "functions", digest(arrays)
     if path.suffix == ".npz":
         data, _ = load_dataset(path)
         return "dataset", digest(data.arrays())

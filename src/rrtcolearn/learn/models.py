@@ -8,16 +8,22 @@ needs per iteration.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import os
 from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.ndimage import maximum_filter
 
+from rrtcolearn.data.store import load_arrays, save_arrays
+from rrtcolearn.errors import ArtefactError
 from rrtcolearn.learn.neighbours import NeighbourIndex
 
 if TYPE_CHECKING:
+    from rrtcolearn.data.dataset import Dataset
     from rrtcolearn.learn.mlp import NeuralRegressor
+    from rrtcolearn.systems.base import System
+
+FUNCTIONS_FORMAT = "rrtcolearn.learned-functions"
 
 
 class _KNNBase:
@@ -147,108 +153,184 @@ class ValidityClassifier(_KNNBase):
         return dist.sum(axis=1) <= self.threshold
 
 
-@dataclass
-class LearnedFunctions:
-    """J, U and V fitted on one dataset and answered from one shared neighbour query.
+class _NeighbourAnswers:
+    """J and U as the neighbours' averages (the paper)."""
 
-    With ``networks`` (see `fit_networks`), J and U come from neural networks on the raw
-    query instead of the neighbours' averages; V, and so which queries are answered at all,
-    stays the k-NN classifier.
+    def __init__(self, cost_to_go: CostToGoRegressor, steering: SteeringRegressor):
+        self.cost_to_go, self.steering = cost_to_go, steering
+
+    def cost(self, X: np.ndarray, dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        return self.cost_to_go.predict_from_neighbours(dist, idx)
+
+    def steer(self, X: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        return self.steering.predict_from_neighbours(None, idx)
+
+
+class _NetworkAnswers:
+    """J and U from the networks on the raw query (the neighbours are not used)."""
+
+    def __init__(self, networks: tuple[NeuralRegressor, NeuralRegressor],
+                 bounds: tuple[float, float]):
+        self.networks, self.bounds = networks, bounds
+
+    def cost(self, X: np.ndarray, dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        return np.clip(self.networks[0].predict(np.asarray(X, dtype=np.float64)), *self.bounds)
+
+    def steer(self, X: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        return self.networks[1].predict(np.asarray(X, dtype=np.float64))
+
+
+class LearnedFunctions:
+    """J, U and V fitted on one dataset and answered from one shared neighbour query
+    (scikit-learn's estimator contract: hyper-parameters in ``__init__``, ``fit`` returns
+    self, learned state in attributes ending in ``_``; `save`/`load` without pickle).
+
+    With ``learner = "mlp"``, J and U come from neural networks on the raw query instead of
+    the neighbours' averages; V, and so which queries are answered at all, stays the k-NN
+    classifier. ``periodic``: angle coordinates wrap in the distance (rows near the seam
+    are indexed one turn over too). ``seed`` seeds the networks' training.
     """
 
-    cost_to_go: CostToGoRegressor
-    steering: SteeringRegressor
-    validity: ValidityClassifier
+    def __init__(self, *, n_neighbors: int = 3,
+                 cost_bounds: tuple[float, float] = (1e-5, 1e5),
+                 validity_threshold: float = 0.3, learner: str = "knn", periodic: bool = True,
+                 mlp_hidden: tuple[int, ...] = (64, 64, 64), mlp_max_iter: int = 200,
+                 mlp_max_samples: int | None = 100_000, seed: int = 0):
+        self.n_neighbors = n_neighbors
+        self.cost_bounds = cost_bounds
+        self.validity_threshold = validity_threshold
+        self.learner = learner
+        self.periodic = periodic
+        self.mlp_hidden = mlp_hidden
+        self.mlp_max_iter = mlp_max_iter
+        self.mlp_max_samples = mlp_max_samples
+        self.seed = seed
 
-    input_scale: np.ndarray | None = None  # (2n,) weights applied to every query
-    source_: np.ndarray | None = None  # data row of each indexed point (padding repeats rows)
-    networks: tuple[NeuralRegressor, NeuralRegressor] | None = None  # (J, U) networks
-    # running share of the queries V accepted: where most are rejected, `query_valid` first
-    # drops the rows whose nearest neighbour alone breaks the threshold (exact, cheap)
-    _accepted: float = field(default=1.0, init=False, repr=False, compare=False)
+    def fit(self, data: Dataset, system: System) -> LearnedFunctions:
+        """Fit on ``data``'s (x0, x1) -> (cost, steering parameters and duration), with the
+        system's metric weights, angle coordinates and steering-parameter ranges."""
+        if self.learner not in ("knn", "mlp"):
+            raise ValueError(f"learner must be 'knn' or 'mlp', got {self.learner!r}")
+        periodic = tuple((j, float(system.state_low[j]), float(system.state_high[j]))
+                         for j in system.angle_dims) if self.periodic else ()
+        self.training_ = {
+            "inputs": np.asarray(data.inputs, dtype=np.float64),
+            "cost": np.asarray(data.cost, dtype=np.float64),
+            "targets": np.hstack([data.params, data.duration[:, None]]).astype(np.float64),
+            "input_scale": np.asarray(system.metric_scale, dtype=np.float64),
+            "circular": np.asarray(system.param_circular, dtype=bool).reshape(-1),
+            "param_low": np.asarray(system.param_low, dtype=np.float64),
+            "param_high": np.asarray(system.param_high, dtype=np.float64),
+            "periodic": np.asarray(periodic, dtype=np.float64).reshape(-1, 3)}
+        self._fit_neighbours()
+        self.networks_ = None
+        if self.learner == "mlp":
+            self.networks_ = self._fit_networks()
+        self._answers = _NeighbourAnswers(self.cost_to_go_, self.steering_) \
+            if self.networks_ is None else _NetworkAnswers(self.networks_, self.cost_bounds)
+        return self
 
-    @classmethod
-    def fit(cls, X: np.ndarray, cost: np.ndarray, steering_targets: np.ndarray, *,
-            n_neighbors: int = 3, cost_bounds: tuple[float, float] = (1e-5, 1e5),
-            validity_threshold: float = 0.3, circular: tuple[bool, ...] = (),
-            low: tuple[float, ...] = (), high: tuple[float, ...] = (),
-            input_scale: np.ndarray | None = None,
-            periodic: tuple[tuple[int, float, float], ...] = ()) -> LearnedFunctions:
-        """Fit on inputs X (N, 2n) = (x0, x1).
-
-        ``input_scale`` (n,) weights the state coordinates in the distance (both halves).
-        ``periodic`` lists angle coordinates as (j, low, high) with x0_j in [low, high) and
-        high - low one turn: rows near either end are repeated one turn over (x0_j and x1_j
-        shifted together, which leaves the problem unchanged), so a query near the seam finds
-        the neighbours on its other side.
-        """
-        X = np.asarray(X, dtype=np.float64)
-        n = X.shape[1] // 2
-        scale = np.ones(2 * n) if input_scale is None else np.tile(
-            np.asarray(input_scale, dtype=np.float64), 2)
+    def _fit_neighbours(self) -> None:
+        t = self.training_
+        X = t["inputs"]
+        scale = np.tile(t["input_scale"], 2)
         source = np.arange(len(X))
+        periodic = tuple((int(j), lo, hi) for j, lo, hi in t["periodic"])
         if periodic and len(X):
-            source, X = _pad_periodic(X, periodic, scale, validity_threshold)
+            source, X = _pad_periodic(X, periodic, scale, self.validity_threshold)
         Xs = X * scale
         index = NeighbourIndex(Xs)
-        cost = np.asarray(cost, dtype=np.float64)[source]
-        steering_targets = np.asarray(steering_targets, dtype=np.float64)[source]
-        return cls(
-            CostToGoRegressor(n_neighbors, cost_bounds).fit(Xs, cost, index),
-            SteeringRegressor(n_neighbors, circular, low, high).fit(Xs, steering_targets, index),
-            ValidityClassifier(n_neighbors, validity_threshold).fit(Xs, None, index),
-            None if input_scale is None else scale, source,
-        )
+        m = self.n_neighbors
+        circular = tuple(bool(c) for c in t["circular"])
+        low, high = tuple(t["param_low"].tolist()), tuple(t["param_high"].tolist())
+        self.cost_to_go_ = CostToGoRegressor(m, self.cost_bounds).fit(
+            Xs, t["cost"][source], index)
+        self.steering_ = SteeringRegressor(m, circular, low, high).fit(
+            Xs, t["targets"][source], index)
+        self.validity_ = ValidityClassifier(m, self.validity_threshold).fit(Xs, None, index)
+        self.input_scale_ = scale
+        self.source_ = source  # data row of each indexed point (padding repeats rows)
+        self.max_duration_ = float(t["targets"][:, -1].max()) if len(X) else 0.0
+        # running share of the queries V accepted: where most are rejected, `query_valid`
+        # first drops the rows whose nearest neighbour alone breaks the threshold (exact)
+        self._accepted = 1.0
 
-    def fit_networks(self, X: np.ndarray, cost: np.ndarray, steering_targets: np.ndarray, *,
-                     hidden: tuple[int, ...] = (64, 64, 64), max_iter: int = 200,
-                     max_samples: int | None = 100_000, seed: int = 0) -> LearnedFunctions:
-        """Train the J network (on log cost) and the U network (circular parameters as
-        angles) on the same data as the neighbours; returns self."""
+    def _fit_networks(self) -> tuple[NeuralRegressor, NeuralRegressor]:
+        """The J network (on log cost) and the U network (circular parameters as angles),
+        on the same data as the neighbours."""
         from rrtcolearn.learn.mlp import NeuralRegressor
 
-        st = self.steering
-        n_targets = np.asarray(steering_targets).shape[1]
+        t, st = self.training_, self.steering_
+        n_targets = t["targets"].shape[1]
         circ = tuple(bool(c) for c in st.circular_)
         low = tuple(float(v) for v in st.low_) + (0.0,) * (n_targets - len(st.low_))
         high = tuple(float(v) for v in st.low_ + st.period_)
-        common = dict(hidden=tuple(hidden), max_iter=max_iter, max_samples=max_samples)
-        j_net = NeuralRegressor(seed=seed, log_target=True, **common).fit(X, cost)
-        u_net = NeuralRegressor(seed=seed + 1, circular=circ, low=low, high=high,
-                                **common).fit(X, steering_targets)
-        self.networks = (j_net, u_net)
-        return self
+        common = dict(hidden=tuple(self.mlp_hidden), max_iter=self.mlp_max_iter,
+                      max_samples=self.mlp_max_samples)
+        j_net = NeuralRegressor(seed=self.seed, log_target=True, **common).fit(
+            t["inputs"], t["cost"])
+        u_net = NeuralRegressor(seed=self.seed + 1, circular=circ, low=low, high=high,
+                                **common).fit(t["inputs"], t["targets"])
+        return j_net, u_net
+
+    def save(self, path: str | os.PathLike, meta: dict | None = None) -> str:
+        """Write the fitted model (its training arrays and the networks' weights, no pickle)
+        atomically; returns the arrays' digest. ``meta`` is stored in the header."""
+        arrays = {f"data.{k}": v for k, v in self.training_.items()}
+        for p, net in zip("JU", self.networks_ or (), strict=False):
+            arrays.update({f"{p}.{k}": v for k, v in net.to_arrays().items()})
+        params = {"n_neighbors": self.n_neighbors, "cost_bounds": list(self.cost_bounds),
+                  "validity_threshold": self.validity_threshold, "learner": self.learner,
+                  "periodic": self.periodic, "mlp_hidden": list(self.mlp_hidden),
+                  "mlp_max_iter": self.mlp_max_iter, "mlp_max_samples": self.mlp_max_samples,
+                  "seed": self.seed}
+        return save_arrays(path, FUNCTIONS_FORMAT, arrays, {**(meta or {}), "params": params})
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> tuple[LearnedFunctions, dict]:
+        """A model written by `save` (the neighbour index rebuilt, the networks read back
+        bit for bit) and the file's header; ArtefactError for anything that does not check
+        out."""
+        arrays, meta = load_arrays(path, FUNCTIONS_FORMAT)
+        try:
+            params = dict(meta["params"])
+            params["cost_bounds"] = tuple(params["cost_bounds"])
+            params["mlp_hidden"] = tuple(params["mlp_hidden"])
+            model = cls(**params)
+            model.training_ = {k[5:]: v for k, v in arrays.items() if k.startswith("data.")}
+            model._fit_neighbours()
+            model.networks_ = None
+            if model.learner == "mlp":
+                from rrtcolearn.learn.mlp import NeuralRegressor
+
+                model.networks_ = tuple(NeuralRegressor.from_arrays(
+                    {k[2:]: v for k, v in arrays.items() if k.startswith(f"{p}.")})
+                    for p in "JU")
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ArtefactError(f"{path} is not a readable model file ({exc})") from None
+        model._answers = _NeighbourAnswers(model.cost_to_go_, model.steering_) \
+            if model.networks_ is None else _NetworkAnswers(model.networks_,
+                                                             model.cost_bounds)
+        return model, meta
 
     @property
-    def n_neighbors(self) -> int:
-        return self.cost_to_go.n_neighbors
-
-    def _network_cost(self, X: np.ndarray) -> np.ndarray:
-        return np.clip(self.networks[0].predict(X), *self.cost_to_go.bounds)
+    def threshold_(self) -> float:
+        """V's threshold on the summed neighbour distance."""
+        return self.validity_.threshold
 
     def steer(self, X: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
         """U (Q, k+1) for queries X (Q, 2n) whose neighbour indices (Q, m) `query_valid`
         returned."""
-        if self.networks is not None:
-            return self.networks[1].predict(np.asarray(X, dtype=np.float64))
-        return self.steering.predict_from_neighbours(None, neighbours)
+        return self._answers.steer(X, neighbours)
 
     def _scaled(self, X: np.ndarray) -> np.ndarray:
-        return X if self.input_scale is None else np.asarray(X, dtype=np.float64) * \
-            self.input_scale
+        return np.asarray(X, dtype=np.float64) * self.input_scale_
 
     def query(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(J (Q,), U (Q, k+1), valid (Q,)) for queries X (Q, 2n)."""
-        dist, idx = self.cost_to_go.kneighbors(self._scaled(X))
-        valid = self.validity.predict_from_neighbours(dist, idx)
-        if self.networks is not None:
-            X = np.asarray(X, dtype=np.float64)
-            return self._network_cost(X), self.networks[1].predict(X), valid
-        return (
-            self.cost_to_go.predict_from_neighbours(dist, idx),
-            self.steering.predict_from_neighbours(dist, idx),
-            valid,
-        )
+        dist, idx = self.cost_to_go_.kneighbors(self._scaled(X))
+        valid = self.validity_.predict_from_neighbours(dist, idx)
+        return self._answers.cost(X, dist, idx), self._answers.steer(X, idx), valid
 
     def query_valid(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rows of X (Q, 2n) that V accepts, with their J and their neighbour indices.
@@ -259,8 +341,8 @@ class LearnedFunctions:
         row the caller picks.
         """
         Xs = self._scaled(X)
-        rows = np.flatnonzero(self.validity.may_be_valid(Xs))
-        threshold, m, index = self.validity.threshold, self.n_neighbors, self.cost_to_go.index_
+        rows = np.flatnonzero(self.validity_.may_be_valid(Xs))
+        threshold, m, index = self.validity_.threshold, self.n_neighbors, self.cost_to_go_.index_
         asked = len(X)
         if self._accepted < 0.5 and rows.size:
             # m distances summing to at most the threshold have the least of them within
@@ -275,9 +357,7 @@ class LearnedFunctions:
         rows, dist, idx = rows[ok], dist[ok], idx[ok]
         if asked:
             self._accepted = 0.9 * self._accepted + 0.1 * rows.size / asked
-        if self.networks is not None:
-            return rows, self._network_cost(np.asarray(X, dtype=np.float64)[rows]), idx
-        return rows, self.cost_to_go.predict_from_neighbours(dist, idx), idx
+        return rows, self._answers.cost(np.asarray(X)[rows], dist, idx), idx
 
 
 def _pad_periodic(X: np.ndarray, periodic, scale: np.ndarray, threshold: float

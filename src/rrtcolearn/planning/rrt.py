@@ -247,7 +247,7 @@ class RRTCoLearn:
         # threshold, since every data pair is at most data_reach apart (weighted; a weighted
         # distance r is at most r / min(weight) raw)
         self._reach = np.inf if model is None else float(
-            (self.settings.data_reach + np.sqrt(2.0) * model.validity.threshold
+            (self.settings.data_reach + np.sqrt(2.0) * model.validity_.threshold
              / model.n_neighbors) / float(np.min(self.settings.metric_scale)))
         self._rejected = "no_costate"  # why the last draw gave no edge (OUTCOMES)
         self._indices: tuple[NodeIndex, ...] = ()  # kept up to date by _add_edge
