@@ -20,9 +20,9 @@ from typer.testing import CliRunner
 
 from rrtcolearn.cli import app
 from rrtcolearn.config import Config, load_config, parse_obstacle, validate
-from rrtcolearn.data.store import load_arrays, load_dataset, save_dataset
+from rrtcolearn.data.store import load_arrays, load_dataset, save_dataset, write_checked_json
 from rrtcolearn.errors import ArtefactError, ConfigError, RRTCoLearnError
-from rrtcolearn.pipeline import read_plan, write_checked_json
+from rrtcolearn.pipeline import read_plan
 from rrtcolearn.planning.problem import PlanningProblem, ProblemError
 from rrtcolearn.systems import make
 

@@ -31,6 +31,7 @@ except ImportError:  # pragma: no cover
 
 from rrtcolearn import __version__, pipeline
 from rrtcolearn.config import Config, add_obstacles, load_config, read_toml
+from rrtcolearn.data.store import write_json
 from rrtcolearn.errors import ConfigError, RRTCoLearnError
 from rrtcolearn.parallel import ExecutionSettings
 from rrtcolearn.planning.problem import PlanningProblem
@@ -433,7 +434,7 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         figures |= _plan_summary(p)
         figures["wall_s"] = round(time.perf_counter() - t0, 2)
         figures["derived"] = dict(sorted(fitted.config.derived.items()))
-        pipeline.write_json(run_dir / "summary.json", figures)
+        write_json(run_dir / "summary.json", figures)
         _print_derived(fitted.config)
         _print_summary(f"run -> {run_dir}", {k: v for k, v in figures.items()
                                               if k != "derived"})

@@ -40,9 +40,10 @@ from rrtcolearn.data.store import (
     digest,
     load_arrays,
     load_dataset,
+    read_checked_json,
     read_json,
     save_dataset,
-    write_json,
+    write_checked_json,
 )
 from rrtcolearn.errors import ArtefactError, ConfigError, EnvironmentProblem
 from rrtcolearn.learn.models import FUNCTIONS_FORMAT, LearnedFunctions
@@ -432,31 +433,6 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
     })
     return FittedModel(system, config, functions, functions.max_duration_,
                        config.generate.max_state_distance)
-
-
-def json_checksum(content: dict) -> str:
-    """SHA-256 of a JSON document's canonical form, without its own ``sha256`` field."""
-    body = {k: v for k, v in content.items() if k != "sha256"}
-    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":"))
-                          .encode()).hexdigest()
-
-
-def write_checked_json(path: str | Path, content: dict) -> None:
-    """Write a JSON artefact with its checksum, atomically."""
-    write_json(path, {**content, "sha256": json_checksum(content)})
-
-
-def read_checked_json(path: str | Path, fmt: str, schema: int, what: str) -> dict:
-    """Read a JSON artefact, refusing another format, schema or a failed checksum."""
-    info = read_json(path, what)
-    if not isinstance(info, dict) or info.get("format") != fmt:
-        raise ArtefactError(f"{path} is not an rrtcolearn {what}")
-    if info.get("schema_version") != schema:
-        raise ArtefactError(f"{path} has schema version {info.get('schema_version')}, "
-                            f"expected {schema}")
-    if info.get("sha256") != json_checksum(info):
-        raise ArtefactError(f"{path} fails its checksum: the file was modified or damaged")
-    return info
 
 
 def read_model_info(run_dir: str | Path) -> tuple[dict, Config, System]:

@@ -68,6 +68,31 @@ def read_json(path: str | os.PathLike, what: str = "file") -> Any:
         raise ArtefactError(f"{what} {path} is not valid JSON ({exc})") from None
 
 
+def json_checksum(content: dict) -> str:
+    """SHA-256 of a JSON document's canonical form, without its own ``sha256`` field."""
+    body = {k: v for k, v in content.items() if k != "sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":"))
+                          .encode()).hexdigest()
+
+
+def write_checked_json(path: str | Path, content: dict) -> None:
+    """Write a JSON artefact with its checksum, atomically."""
+    write_json(path, {**content, "sha256": json_checksum(content)})
+
+
+def read_checked_json(path: str | Path, fmt: str, schema: int, what: str) -> dict:
+    """Read a JSON artefact, refusing another format, schema or a failed checksum."""
+    info = read_json(path, what)
+    if not isinstance(info, dict) or info.get("format") != fmt:
+        raise ArtefactError(f"{path} is not an rrtcolearn {what}")
+    if info.get("schema_version") != schema:
+        raise ArtefactError(f"{path} has schema version {info.get('schema_version')}, "
+                            f"expected {schema}")
+    if info.get("sha256") != json_checksum(info):
+        raise ArtefactError(f"{path} fails its checksum: the file was modified or damaged")
+    return info
+
+
 def digest(arrays: dict[str, np.ndarray]) -> str:
     """SHA-256 over arrays in name order: name, dtype, shape and C-order bytes."""
     h = hashlib.sha256()
