@@ -152,7 +152,7 @@ def test_control_edge_cost_with_two_weighted_asymmetric_inputs():
     tree_edges = [planner._control_edge(rng, np.array([-1.0, -1.0]), False) for _ in range(50)]
     for edge in tree_edges:
         assert edge is not None
-        traj, u, cost, steps, u_abs, _, _ = edge
+        traj, u, cost, steps, u_abs = edge.traj, edge.control, edge.cost, edge.steps, edge.u_abs
         assert -1.0 <= u[0] <= 0.5 and -0.5 <= u[1] <= 1.0
         assert u_abs == np.abs(u).max()
         assert cost == pytest.approx(steps * 0.01 * (0.7 + u[0] ** 2 + 0.25 * u[1] ** 2),

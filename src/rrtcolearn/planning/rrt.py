@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, fields, replace
+from typing import NamedTuple
 
 import numpy as np
 from scipy.special import ndtr, ndtri
@@ -170,6 +171,30 @@ _FUNNEL_POINTS = 3  # funnel states tried per node (each on its own extremal, ne
 _FUNNEL_STRETCH = 1.5  # a funnel connection may last this times the funnel's duration
 
 
+class Edge(NamedTuple):
+    """One tree edge from its parent's state.
+
+    traj : (steps + 1, .) the integrated states from the parent's (columns 0..n-1); an
+        extremal's rows also hold its costate (n..2n-1) and its cost so far (2n).
+    steps, cost, u_abs : its RK4 steps, its cost and its largest |u_i|.
+    hit : it ends in the goal region.
+    params, costate : an extremal's steering parameters (with its duration last) and its
+        costate at the start; None for a random-control edge.
+    control : a random-control edge's held input; None for an extremal.
+    end_distance : the end's distance to the goal region, where known.
+    """
+
+    traj: np.ndarray
+    steps: int
+    cost: float
+    u_abs: float
+    hit: bool
+    params: np.ndarray | None = None
+    costate: np.ndarray | None = None
+    control: np.ndarray | None = None
+    end_distance: float | None = None
+
+
 @dataclass
 class _FunnelSearch:
     """Per tree node: its nearest funnel states (distances and indices, rows filled up to
@@ -329,8 +354,7 @@ class RRTCoLearn:
     def _edge(self, rng, x0: np.ndarray, prediction: np.ndarray, sigma: float,
               lam: np.ndarray, z0: np.ndarray):
         """One edge from ``x0``: steering parameters drawn around ``prediction``, integrated,
-        checked and cut. (trajectory, parameters, costate, steps, max |u|, reaches the goal)
-        or None when the draw gives no edge."""
+        checked and cut; None when the draw gives no edge."""
         # redraw parameters whose costate does not exist or whose input already breaks
         # the limit at the start: such an edge would be rejected without integrating it
         self._rejected = "no_costate"
@@ -426,7 +450,8 @@ class RRTCoLearn:
         if u_max is not None and u_abs > u_max:
             self._rejected = "input_limit"
             return None
-        return traj, params, lam.copy(), steps, u_abs, bool(hit.size)
+        return Edge(traj, steps, float(traj[-1, 2 * n]), u_abs, bool(hit.size), params,
+                    lam.copy())
 
     def _connect_goal(self, tree: PlannerData, shifts: np.ndarray, tried: np.ndarray,
                       weight: np.ndarray, lam: np.ndarray, z0: np.ndarray):
@@ -480,7 +505,7 @@ class RRTCoLearn:
         if not self._start_edge(x0, params, lam, z0):
             return None
         edge = self._integrate_edge(x0, params, lam, z0)
-        return edge if edge is not None and edge[5] else None
+        return edge if edge is not None and edge.hit else None
 
     def _connect_funnel(self, tree: PlannerData, search: _FunnelSearch, lam: np.ndarray,
                         z0: np.ndarray):
@@ -603,21 +628,22 @@ class RRTCoLearn:
                     if self._within_limit(z0) else None
             if cand is None:
                 continue
-            if s.control_samples == 1 or cand[5]:  # the paper's single draw, or a goal hit
+            if s.control_samples == 1 or cand.hit:  # the paper's single draw, or a goal hit
                 edge = cand
                 break
             # OMPL's directed control sampling: keep the draw ending nearest the target,
             # cut at its state nearest the target
-            wd = (cand[0][1:, :n] - aim) * weight
+            wd = (cand.traj[1:, :n] - aim) * weight
             d2 = np.einsum("ij,ij->i", wd, wd)
             k = int(np.argmin(d2))
             if d2[k] < best_d2:
                 best_d2 = float(d2[k])
-                traj_c, params_c = cand[0][: k + 2], cand[1].copy()
+                traj_c, params_c = cand.traj[: k + 2], cand.params.copy()
                 params_c[-1] = (k + 1) * s.dt
                 u_c = float(np.abs(sys.optimal_control(
                     traj_c[:, :n], traj_c[:, n : 2 * n])).max())
-                edge = (traj_c, params_c, cand[2], k + 1, u_c, False)
+                edge = Edge(traj_c, k + 1, float(traj_c[-1, 2 * n]), u_c, False, params_c,
+                            cand.costate)
         return parent, edge, "learned"
 
     def _goal_hits(self, path: np.ndarray) -> np.ndarray:
@@ -632,9 +658,7 @@ class RRTCoLearn:
         and at its first state in the goal region. ``directed`` (goal-biased iterations):
         ``control_samples`` draws, and the one passing nearest the goal region (in the goal
         test's own distance) is kept, cut there (OMPL's directed control sampling), unless a
-        draw reaches the region. An edge tuple with the input in place of the costate
-        (`_add_control_edge`) and the end's distance to the goal region, or None when no
-        draw has even one valid step."""
+        draw reaches the region. None when no draw has even one valid step."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         count = max(1, s.control_samples) if directed else 1
         longest = max(1, round(s.max_duration / s.dt))
@@ -682,8 +706,8 @@ class RRTCoLearn:
         rate = s.time_weight + 0.5 * float(u @ self._input_weight @ u)
         end_distance = float(dist[j]) if dist is not None else \
             float(prob.goal_distance(traj[-1:])[0])
-        return (traj, u, (k + 1) * s.dt * rate, k + 1, float(np.abs(u).max()), hit,
-                end_distance)
+        return Edge(traj, k + 1, (k + 1) * s.dt * rate, float(np.abs(u).max()), hit,
+                    control=u, end_distance=end_distance)
 
     def _goal_mask(self, states: np.ndarray) -> np.ndarray:
         """(N,) True for the states (N, n) inside the goal region."""
@@ -693,24 +717,20 @@ class RRTCoLearn:
             return np.einsum("ij,ij->i", gd, gd) <= prob.goal_tolerance**2
         return prob.goal_distance(states) <= prob.goal_tolerance
 
-    def _add_control_edge(self, tree: PlannerData, parent: int, edge) -> int:
-        """Add the node at the end of a `_control_edge` below ``parent``."""
-        traj, u, cost, steps, u_abs = edge[:5]
-        n = self.problem.system.n_states
+    def _add_edge(self, tree: PlannerData, parent: int, edge: Edge) -> int:
+        """Add the node at the end of ``edge`` below ``parent``."""
+        sys = self.problem.system
+        n = sys.n_states
+        end = edge.traj[-1, :n]
         for index in self._indices:
-            index.add(traj[-1])
-        return tree.add(traj[-1], parent, np.full(n, np.nan),
-                        np.full(self.problem.system.n_params, np.nan), steps * self.settings.dt,
-                        cost, traj, u_abs, control=u)
-
-    def _add_edge(self, tree: PlannerData, parent: int, edge) -> int:
-        """Add the node at the end of ``edge`` (as `_edge` returns it) below ``parent``."""
-        traj, params, lam, steps, u_abs, _ = edge
-        n = self.problem.system.n_states
-        for index in self._indices:
-            index.add(traj[-1, :n])
-        return tree.add(traj[-1, :n], parent, lam, params[:-1], steps * self.settings.dt,
-                        traj[-1, 2 * n], traj[:, :n], u_abs)
+            index.add(end)
+        if edge.control is not None:
+            return tree.add(end, parent, np.full(n, np.nan), np.full(sys.n_params, np.nan),
+                            edge.steps * self.settings.dt, edge.cost, edge.traj, edge.u_abs,
+                            control=edge.control)
+        return tree.add(end, parent, edge.costate, edge.params[:-1],
+                        edge.steps * self.settings.dt, edge.cost, edge.traj[:, :n],
+                        edge.u_abs)
 
     def solve(self, termination: TerminationCondition, seed: int | np.random.SeedSequence = 0
               ) -> Plan:
@@ -824,17 +844,16 @@ class RRTCoLearn:
             outcomes["added"] += 1
             edges_by[kind] += 1
             last_growth = iterations
-            node = self._add_control_edge(tree, parent, edge) if kind == "control" \
-                else self._add_edge(tree, parent, edge)
-            traj, hit = edge[0], edge[5]
-            d_goal = edge[6] if kind == "control" else \
+            node = self._add_edge(tree, parent, edge)
+            traj = edge.traj
+            d_goal = edge.end_distance if edge.end_distance is not None else \
                 float(prob.goal_distance(traj[-1:, :n])[0])
             if d_goal < best_goal:
                 best_goal, since_nearer, since_growth_nearer = d_goal, 0, 0
             if node == shifts.shape[0]:
                 shifts = np.concatenate([shifts, np.empty_like(shifts)])
             shifts[node] = sys.wrap_shift(traj[-1:, :n])[0]
-            if hit:
+            if edge.hit:
                 goal_node = node
         cpu = time.thread_time() - cpu0
         wall = termination.elapsed()
