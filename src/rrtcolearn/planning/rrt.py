@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -210,6 +210,38 @@ class _FunnelSearch:
         self.dist = _grown(self.dist, m, np.inf)
         self.index = _grown(self.index, m, 0)
         self.tried = _grown(self.tried, m, False)
+
+
+@dataclass
+class _Run:
+    """What one `RRTCoLearn.solve` keeps between iterations."""
+
+    tree: PlannerData
+    weight: np.ndarray  # the planner metric's coordinate weights
+    plain: NodeIndex  # tree nodes by weighted distance
+    wrapped: NodeIndex  # ... with angles modulo a turn
+    shifts: np.ndarray  # per node: whole turns that take its state into the box
+    lam: np.ndarray  # scratch: a costate
+    z0: np.ndarray  # scratch: an extremal's initial state, costate and cost
+    controls: bool  # random-control edges possible (an input box)
+    exploring: bool  # random-control edges on
+    connecting: bool  # shooting to the goal on
+    auto_connect: bool  # the planner may switch shooting on
+    auto_funnel: bool  # ... and the funnel
+    search: _FunnelSearch | None  # the goal funnel, once built
+    best_goal: float  # the nearest any node came to the goal region
+    iterations: int = 0
+    goal_node: int = -1
+    connection: str | None = None  # which connection made the last edge, if one did
+    since_nearer: int = 0  # goal-biased iterations since a node came nearer the goal
+    since_growth_nearer: int = 0  # iterations since a node came nearer the goal
+    failed_shots: int = 0
+    last_growth: int = 0  # the iteration that last added a node
+    stalled: bool = False
+    tried: np.ndarray = field(default_factory=lambda: np.zeros(256, dtype=bool))
+    switched: dict = field(default_factory=dict)  # when connections were switched on
+    edges_by: dict = field(default_factory=lambda: {"learned": 0, "control": 0})
+    outcomes: dict = field(default_factory=lambda: dict.fromkeys(OUTCOMES, 0))
 
 
 def _grown(a: np.ndarray, m: int, fill) -> np.ndarray:
@@ -737,8 +769,35 @@ class RRTCoLearn:
         """Grow the tree until a node reaches the goal region or ``termination`` says stop."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         rng = np.random.default_rng(seed)
+        cpu0 = time.thread_time()
+        termination.start()
+        run = self._start(rng)  # a goal funnel asked for is built here: it counts as planning
+        if run.best_goal <= prob.goal_tolerance:
+            run.goal_node = 0
+        while run.goal_node < 0 and not termination(run.iterations):
+            if s.stall_iterations and run.iterations - run.last_growth >= s.stall_iterations:
+                run.stalled = True
+                break
+            run.iterations += 1
+            run.since_growth_nearer += 1
+            if run.controls and not run.exploring and \
+                    run.since_growth_nearer >= CONTROLS_AFTER:
+                # the learned steering stalls: explore with random controls
+                run.exploring = True
+                run.switched["controls"] = run.iterations
+            to_goal = rng.random() < s.goal_bias
+            target = prob.sample_goal(rng) if to_goal else \
+                rng.uniform(sys.state_low, sys.state_high)
+            if to_goal and self._connect(rng, run):
+                break
+            self._expand(rng, run, target, to_goal)
+        return self._result(run, time.thread_time() - cpu0, termination.elapsed())
+
+    def _start(self, rng: np.random.Generator) -> _Run:
+        """The state of a new `solve`: the tree at the start, its node indices, the goal
+        connections as the settings have them."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
         n = sys.n_states
-        tree = PlannerData(prob.start, sys.n_params, n_inputs=sys.n_inputs)
         weight = np.asarray(s.metric_scale, dtype=np.float64)
         # tree nodes in nearest-neighbour structures: candidate parents by plain (weighted)
         # distance, and by distance with angles modulo a turn (extend, the wrapped goal)
@@ -749,140 +808,124 @@ class RRTCoLearn:
         self._indices = (plain, wrapped) if wrapped is not plain else (plain,)
         for index in self._indices:
             index.add(prob.start)
-        bounded = s.max_candidates is not None
         # learning-query start of every node: its state shifted by whole turns into the box
         shifts = np.empty((256, n))
         shifts[0] = sys.wrap_shift(prob.start[None])[0]
-        reach2 = self._reach * self._reach
-        lam = np.empty(n)
-        z0 = np.empty(2 * n + 1)
-        goal_node = -1
-        tried = np.zeros(256, dtype=bool)  # nodes the goal connection has started from
-        connection = None  # which connection made the last edge, if one did
-        extend = bool(s.extend_distance)  # 0: off
         # random-control expansions (`_control_edge`): only with a box to draw inputs from
         controls = self._control_box is not None and s.control_edges is not False
-        exploring = controls and s.control_edges is True
-        since_growth_nearer = 0  # iterations since a node came nearer the goal
-        edges_by = {"learned": 0, "control": 0}
-        iterations = 0
-        # what became of each iteration (`diagnose`), and when the tree last grew
-        outcomes = dict.fromkeys(OUTCOMES, 0)
-        last_growth = 0
-        stalled = False
-        cpu0 = time.thread_time()
-        termination.start()
-        search = None
-        # the goal connections: on from the start, off, or (None) switched on by the planner
         can_connect = sys.params_from_costate is not None
-        connecting = s.goal_connect is True
-        auto_connect = s.goal_connect is None and can_connect
-        auto_funnel = s.goal_funnel is None and can_connect
-        if s.goal_funnel:
-            search = self._build_funnel(rng, weight, s.goal_funnel)
-        best_goal = float(prob.goal_distance(prob.start)[0])
-        since_nearer = 0  # goal-biased iterations since a node came nearer the goal
-        failed_shots = 0
-        switched = {}  # when the automatic connections were switched on (iteration)
-        if best_goal <= prob.goal_tolerance:
-            goal_node = 0
-        while goal_node < 0 and not termination(iterations):
-            if s.stall_iterations and iterations - last_growth >= s.stall_iterations:
-                stalled = True
-                break
-            iterations += 1
-            since_growth_nearer += 1
-            if controls and not exploring and since_growth_nearer >= CONTROLS_AFTER:
-                exploring = True  # the learned steering stalls: explore with random controls
-                switched["controls"] = iterations
-            to_goal = rng.random() < s.goal_bias
-            target = prob.sample_goal(rng) if to_goal else \
-                rng.uniform(sys.state_low, sys.state_high)
-            m = tree.n_nodes
-            if to_goal:
-                since_nearer += 1
-                # (not while random controls explore: in the external problems the
-                # connections never reached the goal then, and took up to a third of the CPU)
-                if auto_connect and not connecting and since_nearer >= CONNECT_AFTER \
-                        and not exploring:
-                    connecting = True  # the learned steering stalls near the goal
-                    switched["shooting"] = iterations
-            if to_goal and connecting:
-                tried = _grown(tried, m, False)
-                before = int(tried[:m].sum())
-                found = self._connect_goal(tree, shifts, tried, weight, lam, z0)
-                if found is not None:
-                    goal_node = self._add_edge(tree, *found)
-                    connection = "shooting"
-                    break
-                failed_shots += int(tried[:m].sum()) - before
-                if auto_funnel and search is None and failed_shots >= FUNNEL_AFTER:
-                    # shooting does not get into the goal: continuation along a funnel
-                    search = self._build_funnel(rng, weight, AUTO_FUNNEL)
-                    switched["funnel"] = iterations
-            if to_goal and search is not None:
-                found = self._connect_funnel(tree, search, lam, z0)
-                if found is not None:
-                    goal_node = self._add_edge(tree, *found)
-                    connection = "funnel"
-                    break
-            states = tree.states[:m]
-            if exploring and (not to_goal or not self._within_reach(states, target, weight,
-                                                                     wrapped)):
-                parent, edge, kind = -1, None, "control"
-            else:
-                parent, edge, kind = self._learned_iteration(
-                    rng, states, target, to_goal, weight, plain, wrapped, shifts, lam, z0,
-                    extend, bounded, reach2)
-            if edge is None and exploring:
-                parent = int(wrapped.nearest(target, 1)[0])
-                edge = self._control_edge(rng, states[parent], to_goal)
-                kind = "control"
-            if edge is None:
-                outcomes[self._rejected] += 1
-                continue
-            outcomes["added"] += 1
-            edges_by[kind] += 1
-            last_growth = iterations
-            node = self._add_edge(tree, parent, edge)
-            traj = edge.traj
-            d_goal = edge.end_distance if edge.end_distance is not None else \
-                float(prob.goal_distance(traj[-1:, :n])[0])
-            if d_goal < best_goal:
-                best_goal, since_nearer, since_growth_nearer = d_goal, 0, 0
-            if node == shifts.shape[0]:
-                shifts = np.concatenate([shifts, np.empty_like(shifts)])
-            shifts[node] = sys.wrap_shift(traj[-1:, :n])[0]
-            if edge.hit:
-                goal_node = node
-        cpu = time.thread_time() - cpu0
-        wall = termination.elapsed()
-        if goal_node >= 0:
-            status, end = "exact", goal_node
+        return _Run(
+            tree=PlannerData(prob.start, sys.n_params, n_inputs=sys.n_inputs), weight=weight,
+            plain=plain, wrapped=wrapped, shifts=shifts, lam=np.empty(n),
+            z0=np.empty(2 * n + 1), controls=controls,
+            exploring=controls and s.control_edges is True,
+            connecting=s.goal_connect is True,
+            auto_connect=s.goal_connect is None and can_connect,
+            auto_funnel=s.goal_funnel is None and can_connect,
+            search=self._build_funnel(rng, weight, s.goal_funnel) if s.goal_funnel else None,
+            best_goal=float(prob.goal_distance(prob.start)[0]))
+
+    def _connect(self, rng: np.random.Generator, run: _Run) -> bool:
+        """A goal-biased iteration's exact connections (shooting, the funnel), switched on
+        here when the learned steering stalls near the goal; True when one reached it."""
+        run.since_nearer += 1
+        # (not while random controls explore: in the external problems the connections
+        # never reached the goal then, and took up to a third of the CPU)
+        if run.auto_connect and not run.connecting and not run.exploring \
+                and run.since_nearer >= CONNECT_AFTER:
+            run.connecting = True
+            run.switched["shooting"] = run.iterations
+        m = run.tree.n_nodes
+        if run.connecting:
+            run.tried = _grown(run.tried, m, False)
+            before = int(run.tried[:m].sum())
+            found = self._connect_goal(run.tree, run.shifts, run.tried, run.weight, run.lam,
+                                       run.z0)
+            if found is not None:
+                run.goal_node, run.connection = self._add_edge(run.tree, *found), "shooting"
+                return True
+            run.failed_shots += int(run.tried[:m].sum()) - before
+            if run.auto_funnel and run.search is None and run.failed_shots >= FUNNEL_AFTER:
+                # shooting does not get into the goal: continuation along a funnel
+                run.search = self._build_funnel(rng, run.weight, AUTO_FUNNEL)
+                run.switched["funnel"] = run.iterations
+        if run.search is not None:
+            found = self._connect_funnel(run.tree, run.search, run.lam, run.z0)
+            if found is not None:
+                run.goal_node, run.connection = self._add_edge(run.tree, *found), "funnel"
+                return True
+        return False
+
+    def _expand(self, rng: np.random.Generator, run: _Run, target: np.ndarray,
+                to_goal: bool) -> None:
+        """One expansion toward ``target``: the learned steering, or while exploring a random
+        control (also where the learned steering adds nothing); its outcome recorded."""
+        prob, s = self.problem, self.settings
+        n = prob.system.n_states
+        states = run.tree.states[: run.tree.n_nodes]
+        if run.exploring and (not to_goal or not self._within_reach(
+                states, target, run.weight, run.wrapped)):
+            parent, edge, kind = -1, None, "control"
+        else:
+            parent, edge, kind = self._learned_iteration(
+                rng, states, target, to_goal, run.weight, run.plain, run.wrapped, run.shifts,
+                run.lam, run.z0, bool(s.extend_distance), s.max_candidates is not None,
+                self._reach * self._reach)
+        if edge is None and run.exploring:
+            parent = int(run.wrapped.nearest(target, 1)[0])
+            edge = self._control_edge(rng, states[parent], to_goal)
+            kind = "control"
+        if edge is None:
+            run.outcomes[self._rejected] += 1
+            return
+        run.outcomes["added"] += 1
+        run.edges_by[kind] += 1
+        run.last_growth = run.iterations
+        node = self._add_edge(run.tree, parent, edge)
+        end = edge.traj[-1:, :n]
+        d_goal = edge.end_distance if edge.end_distance is not None else \
+            float(prob.goal_distance(end)[0])
+        if d_goal < run.best_goal:
+            run.best_goal, run.since_nearer, run.since_growth_nearer = d_goal, 0, 0
+        if node == run.shifts.shape[0]:
+            run.shifts = np.concatenate([run.shifts, np.empty_like(run.shifts)])
+        run.shifts[node] = prob.system.wrap_shift(end)[0]
+        if edge.hit:
+            run.goal_node = node
+
+    def _result(self, run: _Run, cpu: float, wall: float) -> Plan:
+        """The plan: the path to the goal node, else to the node nearest the goal region,
+        with what became of the iterations and, unsolved, why."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        tree = run.tree
+        if run.goal_node >= 0:
+            status, end = "exact", run.goal_node
         else:
             dist = prob.goal_distance(tree.states[: tree.n_nodes])
             end = int(np.argmin(dist))
             status = "approximate" if end != 0 else "timeout"
         region = prob.goal_fn is not None or prob.goal_weights is not None
         input_low, input_high = sys.input_limits() if sys.input_limited else (None, None)
+        search = run.search
         return Plan(
             system=sys.name, start=prob.start, goal=prob.goal,
             goal_tolerance=prob.goal_tolerance, time_weight=s.time_weight, dt=s.dt,
-            status=status, planning_time_s=wall, planning_cpu_s=cpu, iterations=iterations,
-            tree=tree, path_nodes=tree.path_to(end), u_max=prob.u_max,
-            input_low=input_low, input_high=input_high,
+            status=status, planning_time_s=wall, planning_cpu_s=cpu,
+            iterations=run.iterations, tree=tree, path_nodes=tree.path_to(end),
+            u_max=prob.u_max, input_low=input_low, input_high=input_high,
             obstacles=[o.to_dict() for o in prob.validity.obstacles],
             goal_angles=prob.goal_angles,
             end_goal_distance=float(prob.goal_distance(tree.states[end])[0]) if region
             else None,
             # which edge reached the goal: the learned steering's, or a connection's
-            extra={**({"goal_connected": connection is not None, "connection": connection,
+            extra={**({"goal_connected": run.connection is not None,
+                       "connection": run.connection,
                        **({"funnel_states": len(search.funnel)} if search else {})}
-                      if connecting or search else {}),
-                   **({"connections_switched_on": switched} if switched else {}),
-                   "outcomes": outcomes, "stalled": stalled,
-                   **({"edges_by": edges_by} if controls else {}),
-                   **({} if goal_node >= 0 else {"diagnosis": diagnose(
-                       outcomes, stalled, tree.n_nodes, prob.u_max is not None,
+                      if run.connecting or search else {}),
+                   **({"connections_switched_on": run.switched} if run.switched else {}),
+                   "outcomes": run.outcomes, "stalled": run.stalled,
+                   **({"edges_by": run.edges_by} if run.controls else {}),
+                   **({} if run.goal_node >= 0 else {"diagnosis": diagnose(
+                       run.outcomes, run.stalled, tree.n_nodes, prob.u_max is not None,
                        (float(prob.goal_distance(prob.start)[0]), float(dist[end])))})},
         )
