@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 import sys
@@ -13,6 +14,7 @@ from typer.testing import CliRunner
 
 from rrtcolearn.cli import app
 from rrtcolearn.data.store import load_dataset
+from rrtcolearn.pipeline import read_plan
 
 TINY = ["--set", "generate.n_simulations=3000", "--set", "clean.k_max=500",
         "--set", "plan.max_iterations=400", "--set", "plan.time_limit=20"]
@@ -242,3 +244,60 @@ def test_run_name_follows_the_system():
     assert _run_name(named) == "mine"
     # a registered system's recommended configuration names its runs
     assert _run_name(load_config(overrides=['system.name="cartpole"'])) == "cartpole-swingup"
+
+
+def test_plan_queries_from_a_file(tiny_run, tmp_path):
+    lines = [{"start": [-3.14159, 0.0], "goal": [0.0, 0.0], "goal_tolerance": 0.3, "seed": 4},
+             {"start": [-1.0, 0.5], "goal": [0.0, 0.0]},
+             {"start": [-2.0, -1.0], "goal": [0.0, 0.0], "seed": 9}]
+    jsonl = tmp_path / "q.jsonl"
+    jsonl.write_text("\n".join(json.dumps(q) for q in lines) + "\n")
+    csv_file = tmp_path / "q.csv"
+    csv_file.write_text('start,goal,goal_tolerance,seed\n"-3.14159,0","0,0",0.3,4\n'
+                        '"-1,0.5","0,0",,\n"-2,-1","0,0",,9\n')
+    timing = {"planning_time_s", "planning_cpu_s", "sha256"}
+
+    def plans(out):
+        return [{k: v for k, v in read_plan(out / f"plan-{i:05d}.json").items()
+                 if k not in timing} for i in range(3)]
+
+    runs = {}
+    for name, path, extra in (("jsonl", jsonl, ()), ("csv", csv_file, ()),
+                              ("workers", jsonl, ("--workers", "2"))):
+        out = tmp_path / name
+        result = invoke("plan", "--model", str(tiny_run), "--queries", str(path), "--out",
+                        str(out), "--max-iterations", "300", *extra)
+        assert result.exit_code == 0, result.output
+        runs[name] = plans(out)
+        rows = list(csv.DictReader((out / "plans.csv").open()))
+        assert [int(r["seed"]) for r in rows] == [4, 1, 9]  # no seed: the line's index
+    # the same queries give the same plans, from either format and from worker processes
+    assert runs["jsonl"] == runs["csv"] == runs["workers"]
+    assert runs["jsonl"][0]["goal_tolerance"] == 0.3 and runs["jsonl"][1]["seed"] == 1
+    # one query of the file, planned alone, is the same plan
+    one = tmp_path / "one.json"
+    result = invoke("plan", "--model", str(tiny_run), "--start=-2,-1", "--goal=0,0",
+                    "--seed", "9", "--max-iterations", "300", "--out", str(one))
+    assert result.exit_code == 0, result.output
+    alone = {k: v for k, v in read_plan(one).items() if k not in timing}
+    assert alone == runs["jsonl"][2]
+
+
+@pytest.mark.parametrize("content, contains", [
+    ('{"start": [0, 0]}\n', "goal is missing"),
+    ('{"start": [0, 0], "goal": [0, 0, 1]}\n', "needs 2 values"),
+    ('{"start": [0, 0], "goal": [0, 0], "tolerance": 1}\n', "unknown field 'tolerance'"),
+    ('{"start": [0, 0], "goal": [0, 0]}\nnot json\n', "line 2: not JSON"),
+    ('{"start": [9, 0], "goal": [0, 0]}\n', "query 0: start theta"),
+    ('{"start": [0, 0], "goal": [0, 0], "seed": -1}\n', "seed must be a non-negative"),
+    ("", "no queries"),
+])
+def test_bad_query_files(tiny_run, tmp_path, content, contains):
+    path = tmp_path / "q.jsonl"
+    path.write_text(content)
+    result = invoke("plan", "--model", str(tiny_run), "--queries", str(path), "--out",
+                    str(tmp_path / "out"))
+    assert_one_line_error(result, contains=contains)
+    assert not (tmp_path / "out").exists()  # nothing planned before every query checks out
+    result = invoke("plan", "--model", str(tiny_run), "--queries", str(path), "--start=0,0")
+    assert_one_line_error(result)

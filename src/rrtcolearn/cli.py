@@ -356,14 +356,21 @@ def plan(
     seed: SeedOpt = None,
     time_limit: Annotated[float | None, typer.Option(help="seconds")] = None,
     max_iterations: Annotated[int | None, typer.Option(help="iteration limit")] = None,
-    out: Annotated[Path | None, typer.Option("--out", help="plan file (JSON)")] = None,
+    out: Annotated[Path | None, typer.Option(
+        "--out", help="plan file (JSON); with --queries a directory (default "
+        "<model>/queries)")] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
     u_max: UMaxOpt = None,
     obstacle: ObstacleOpt = None,
     system_name: SystemOpt = None,
+    queries: Annotated[Path | None, typer.Option(
+        "--queries", help="plan every query of this file (CSV with start, goal[, "
+        "goal_tolerance, seed] columns, or JSON lines) from one process")] = None,
+    workers: WorkersOpt = None,
 ) -> None:
-    """Plan one query with a fitted model; writes the plan JSON and a PNG of the tree."""
+    """Plan one query with a fitted model; writes the plan JSON and a PNG of the tree.
+    With --queries, plans every query of a file into a directory of plan files."""
     def body():
         run_dir = model if model is not None else Path("runs") / _run_name(
             Config() if system_name is None else Config().model_copy(update={
@@ -386,6 +393,12 @@ def plan(
             "plan": model_cfg.plan.model_dump(),
             "system": model_cfg.system.model_dump(exclude_none=True)}, options=options)
         cfg = add_obstacles(cfg, list(obstacle or []))
+        if queries is not None:
+            _plan_queries(run_dir, cfg, system, queries, out, workers,
+                          given=start is not None or goal is not None or seed is not None)
+            return
+        if workers is not None:
+            raise ConfigError("--workers plans the queries of a file: give --queries")
         start_x, goal_x = pipeline.query_states(cfg, system)
         PlanningProblem.create(system, start_x, goal_x, cfg.plan.goal_tolerance,
                                obstacles=[o.model_dump() for o in cfg.plan.obstacles],
@@ -404,6 +417,45 @@ def plan(
         _write_plan(p, out_path, fitted.system.state_names)
         _print_summary(f"plan -> {out_path}", _plan_summary(p))
     _guard(body)
+
+
+def _plan_queries(run_dir: Path, cfg: Config, system, path: Path, out: Path | None,
+                  workers: int | None, given: bool) -> None:
+    """`plan --queries`: every query of the file, one plan file each, and a summary."""
+    from rrtcolearn.queries import plan_query_file, read_queries
+
+    if given:
+        raise ConfigError("--queries takes start, goal and seed from the file: drop "
+                          "--start, --goal and --seed")
+    qs = read_queries(path, cfg.plan.goal_tolerance, system.n_states)
+    for i, q in enumerate(qs):  # every query checked before any is planned
+        try:
+            PlanningProblem.create(system, q.start, q.goal, q.goal_tolerance,
+                                   obstacles=[o.model_dump() for o in cfg.plan.obstacles],
+                                   state_low=cfg.plan.state_low,
+                                   state_high=cfg.plan.state_high,
+                                   goal_weights=cfg.plan.goal_weights)
+        except ValueError as exc:
+            raise ConfigError(f"{path}: query {i}: {exc}") from None
+    out_dir = out if out is not None else run_dir / "queries"
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"--out {out_dir} is a file; with --queries give a directory")
+    settings = ExecutionSettings.from_options(workers, None, None)
+    t0 = time.perf_counter()
+    with _progress() as bar:
+        task = bar.add_task("planning queries", total=len(qs))
+        rows = plan_query_file(run_dir, qs, out_dir, config=cfg,
+                               time_limit=cfg.plan.time_limit,
+                               max_iterations=cfg.plan.max_iterations, settings=settings,
+                               progress=lambda done: bar.update(task, completed=done))
+    cpu = np.array([r["planning_cpu_s"] for r in rows])
+    solved = sum(bool(r["solved"]) for r in rows)
+    _print_summary(f"plan --queries -> {out_dir}", {
+        "queries": len(rows), "solved": f"{solved}/{len(rows)}",
+        "planning_cpu_s median": round(float(np.median(cpu)), 4),
+        "planning_cpu_s mean": round(float(cpu.mean()), 4),
+        "wall_s": round(time.perf_counter() - t0, 2),
+        "summary": str(out_dir / "plans.csv")})
 
 
 @app.command()
