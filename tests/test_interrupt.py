@@ -14,7 +14,8 @@ import pytest
 
 from rrtcolearn.config import read_toml
 from rrtcolearn.data.store import load_dataset, read_json
-from rrtcolearn.pipeline import read_model_info, read_plan
+from rrtcolearn.learn import LearnedFunctions
+from rrtcolearn.pipeline import FUNCTIONS_FILE, read_model_info, read_plan
 
 EXE = str(Path(sys.executable).with_name("rrtcolearn"))
 SMALL = ["--set", "generate.n_simulations=20000", "--set", "generate.chunk_size=1000"]
@@ -27,7 +28,9 @@ def check_directory(d: Path) -> list[str]:
         if not path.is_file() or path.name.startswith("."):
             continue  # .*.tmp files are never read
         found.append(path.name)
-        if path.suffix == ".npz":
+        if path.name == FUNCTIONS_FILE:
+            LearnedFunctions.load(path)
+        elif path.suffix == ".npz":
             load_dataset(path)
         elif path.name == "model.json":
             read_model_info(path.parent)
