@@ -313,11 +313,6 @@ class LearnedFunctions:
                                                              model.cost_bounds)
         return model, meta
 
-    @property
-    def threshold_(self) -> float:
-        """V's threshold on the summed neighbour distance."""
-        return self.validity_.threshold
-
     def steer(self, X: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
         """U (Q, k+1) for queries X (Q, 2n) whose neighbour indices (Q, m) `query_valid`
         returned."""
