@@ -218,8 +218,8 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
                 f"{res:.2g} relative, at best)")
     d_e = float(problem.goal_distance(x_e[None])[0])
     if not d_e <= 0.5 * problem.goal_tolerance:
-        return (f"the nearest equilibrium lies {d_e:.3g} from the goal region's centre, more "
-                "than half the tolerance")
+        return (f"the goal is no equilibrium: the nearest equilibrium found lies {d_e:.3g} "
+                "from the goal region, more than half the tolerance")
     with np.errstate(all="ignore"):
         A, B = step_jacobians(sys, x_e, u_e, dt)
     if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
