@@ -252,6 +252,14 @@ class PlanConfig(_Section):
         "while a node lies within the data's reach of them; false: the paper's planner "
         "(learned steering only); none: switched on once the learned steering stalls (100 "
         "iterations without a node nearer the goal)")
+    goal_lqr: bool | None = Field(
+        None, description="in goal-biased iterations, also steer to the goal by LQR about an "
+        "equilibrium next to the goal (input in the input box, within half the tolerance): "
+        "the untried node with the least LQR cost-to-go follows the saturated closed loop, "
+        "added as constant-input edges; false: the paper's planner; none: switched on once "
+        "the tree stalls near the goal (50 goal-biased iterations without a node nearer "
+        "the goal), also while random controls explore; off where the goal is no "
+        "equilibrium")
     stall_iterations: int = Field(
         10_000, ge=0, description="stop early when this many iterations in a row added no "
         "node, with a diagnosis of what rejected them (0: never)")
@@ -331,7 +339,7 @@ PAPER: dict[str, dict[str, Any]] = {
     "learn": {"validity_threshold": 0.5, "learner": "knn"},
     "plan": {"sigma": math.pi / 4, "sigma_goal": math.pi / 2, "control_samples": 1,
              "extend_distance": 0.0, "goal_connect": False, "goal_funnel": 0,
-             "control_edges": False},
+             "control_edges": False, "goal_lqr": False},
 }
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, fields, replace
+from itertools import pairwise
 from typing import NamedTuple
 
 import numpy as np
@@ -15,6 +16,7 @@ from rrtcolearn.errors import ConfigError
 from rrtcolearn.integrate import propagate, rollout
 from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.planning.funnel import GoalFunnel
+from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
 from rrtcolearn.planning.nearest import NodeIndex
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.shooting import shoot
@@ -77,6 +79,7 @@ class PlannerSettings:
     funnel_min_duration: float = _default(PlanConfig, "funnel_min_duration")
     stall_iterations: int = _default(PlanConfig, "stall_iterations")
     control_edges: bool | None = _default(PlanConfig, "control_edges")
+    goal_lqr: bool | None = _default(PlanConfig, "goal_lqr")
 
     @classmethod
     def from_config(cls, config: Config, **data) -> PlannerSettings:
@@ -159,9 +162,10 @@ _TRUNCATION_ADVICE = (" (with limit_mode 'truncate', extremals that break the li
                       "leave no data: use 'saturate', where the optimal control rides the "
                       "limit)")
 
-# automatic goal connection (goal_connect / goal_funnel None): shooting from the nearest
-# nodes once this many goal-biased iterations in a row brought no node nearer the goal, and
-# a funnel of AUTO_FUNNEL extremals once shooting has failed from FUNNEL_AFTER nodes
+# automatic goal connection (goal_connect / goal_funnel / goal_lqr None): shooting from the
+# nearest nodes (and the LQR connection, also while random controls explore) once this many
+# goal-biased iterations in a row brought no node nearer the goal, and a funnel of
+# AUTO_FUNNEL extremals once shooting has failed from FUNNEL_AFTER nodes
 CONNECT_AFTER = 50
 CONTROLS_AFTER = 100
 FUNNEL_AFTER = 20
@@ -213,6 +217,27 @@ class _FunnelSearch:
 
 
 @dataclass
+class _LQRSearch:
+    """The LQR goal connection of one run: the controller, or why there is none (``off``), and
+    per tree node its Lyapunov value (rows filled up to ``queried``) and whether the
+    connection has started from it; ``tries`` counts the closed loops run."""
+
+    lqr: GoalLQR | None
+    off: str | None = None
+    value: np.ndarray = field(default_factory=lambda: np.full(256, np.inf))
+    tried: np.ndarray = field(default_factory=lambda: np.zeros(256, dtype=bool))
+    queried: int = 0
+    tries: int = 0
+    # the least value from which the loop ran out of time (funnel_duration) without reaching
+    # the goal: only nodes below it are tried (from farther in V the loop takes longer)
+    ceiling: float = np.inf
+
+    def grow(self, m: int) -> None:
+        self.value = _grown(self.value, m, np.inf)
+        self.tried = _grown(self.tried, m, False)
+
+
+@dataclass
 class _Run:
     """What one `RRTCoLearn.solve` keeps between iterations."""
 
@@ -228,7 +253,9 @@ class _Run:
     connecting: bool  # shooting to the goal on
     auto_connect: bool  # the planner may switch shooting on
     auto_funnel: bool  # ... and the funnel
+    auto_lqr: bool  # ... and the LQR connection
     search: _FunnelSearch | None  # the goal funnel, once built
+    lqr: _LQRSearch | None  # the LQR connection, once switched on (maybe off: no equilibrium)
     best_goal: float  # the nearest any node came to the goal region
     iterations: int = 0
     goal_node: int = -1
@@ -326,12 +353,18 @@ class RRTCoLearn:
         elif problem.u_max is not None:
             self._control_box = (np.full(sys.n_inputs, -problem.u_max),
                                  np.full(sys.n_inputs, problem.u_max))
+        if model is None and (self._control_box is None or self.settings.control_edges is False
+                              or self.settings.goal_connect is True):
+            raise ConfigError("without learned functions the planner grows by random-control "
+                              "edges only: it needs an input box (input limits or u_max), "
+                              "plan.control_edges not false and plan.goal_connect not true")
         # propagation stops at the state constraints (non-angle coordinates)
         self._box = problem.constraint_box if self.settings.enforce_bounds else \
             (np.full(sys.n_states, -np.inf), np.full(sys.n_states, np.inf))
-        if self._control_box is not None:
+        if self._control_box is not None or self.settings.goal_lqr is not False:
             # the running cost w + u^T R u / 2 of a held input is H at lambda = 0; R read off
             # the system's H once (polarisation), so an edge's cost needs no call into it
+            # (random-control edges, the LQR connection's edges)
             m, w = sys.n_inputs, self.settings.time_weight
             pairs = [(i, j) for i in range(m) for j in range(i + 1, m)]
             eye = np.eye(m)
@@ -813,22 +846,31 @@ class RRTCoLearn:
         shifts[0] = sys.wrap_shift(prob.start[None])[0]
         # random-control expansions (`_control_edge`): only with a box to draw inputs from
         controls = self._control_box is not None and s.control_edges is not False
-        can_connect = sys.params_from_costate is not None
+        # shooting starts from U's guess: not without learned functions
+        can_connect = sys.params_from_costate is not None and self.model is not None
         return _Run(
             tree=PlannerData(prob.start, sys.n_params, n_inputs=sys.n_inputs), weight=weight,
             plain=plain, wrapped=wrapped, shifts=shifts, lam=np.empty(n),
             z0=np.empty(2 * n + 1), controls=controls,
-            exploring=controls and s.control_edges is True,
+            exploring=controls and (s.control_edges is True or self.model is None),
             connecting=s.goal_connect is True,
             auto_connect=s.goal_connect is None and can_connect,
             auto_funnel=s.goal_funnel is None and can_connect,
+            auto_lqr=s.goal_lqr is None,
             search=self._build_funnel(rng, weight, s.goal_funnel) if s.goal_funnel else None,
+            lqr=self._build_lqr() if s.goal_lqr else None,
             best_goal=float(prob.goal_distance(prob.start)[0]))
 
     def _connect(self, rng: np.random.Generator, run: _Run) -> bool:
-        """A goal-biased iteration's exact connections (shooting, the funnel), switched on
-        here when the learned steering stalls near the goal; True when one reached it."""
+        """A goal-biased iteration's exact connections (shooting, the funnel, the LQR
+        connection), switched on here when the tree stalls near the goal; True when one
+        reached it."""
         run.since_nearer += 1
+        if run.auto_lqr and run.lqr is None and run.since_nearer >= CONNECT_AFTER:
+            # (also while random controls explore: where it works, it is what gets the
+            # random-control tree into a small goal region)
+            run.lqr = self._build_lqr()
+            run.switched["lqr"] = run.iterations
         # (not while random controls explore: in the external problems the connections
         # never reached the goal then, and took up to a third of the CPU)
         if run.auto_connect and not run.connecting and not run.exploring \
@@ -854,7 +896,62 @@ class RRTCoLearn:
             if found is not None:
                 run.goal_node, run.connection = self._add_edge(run.tree, *found), "funnel"
                 return True
+        # last, so that the tree is the one without it until it connects
+        if run.lqr is not None and run.lqr.lqr is not None:
+            found = self._connect_lqr(run.tree, run.lqr)
+            if found is not None:
+                parent, chain = found
+                for edge in chain:
+                    parent = self._add_node(run, parent, edge)
+                run.goal_node, run.connection = parent, "lqr"
+                return True
         return False
+
+    def _build_lqr(self) -> _LQRSearch:
+        """The LQR connection's search state: the controller about the goal's equilibrium, or
+        none and why (`lqr.build_goal_lqr`); built inside the timed region."""
+        built = build_goal_lqr(self.problem, self.settings.dt,
+                               getattr(self, "_input_weight", None))
+        return _LQRSearch(None, built) if isinstance(built, str) else _LQRSearch(built)
+
+    def _connect_lqr(self, tree: PlannerData, search: _LQRSearch):
+        """The LQR closed loop to the goal from the untried node with the least Lyapunov
+        value, as a chain of constant-input edges (consecutive equal inputs, e.g. saturated,
+        merged into one); (node, edges) or None when it does not reach the goal region
+        within ``funnel_duration``, leaves the constraints, meets an obstacle or leaves the
+        loop's basin (`GoalLQR.run`). Once a loop runs out of time, only nodes with a lower
+        value than its start are tried."""
+        prob, s = self.problem, self.settings
+        lqr = search.lqr
+        m = tree.n_nodes
+        search.grow(m)
+        if search.queried < m:
+            search.value[search.queried : m] = lqr.value(tree.states[search.queried : m])
+            search.queried = m
+        value = np.where(search.tried[:m], np.inf, search.value[:m])
+        node = int(np.argmin(value))
+        if not value[node] < search.ceiling:
+            return None
+        search.tried[node] = True
+        search.tries += 1
+        out = lqr.run(tree.states[node], max(1, round(s.funnel_duration / s.dt)), self._box,
+                      self._goal_mask, prob.validity if prob.validity else None)
+        if out.end == "timeout":
+            search.ceiling = float(value[node])
+        if not out.reached:
+            return None
+        us = out.inputs
+        breaks = [0, *np.flatnonzero(np.any(us[1:] != us[:-1], axis=1)) + 1, len(us)]
+        chain = []
+        for a, b in pairwise(breaks):
+            u = us[a].copy()
+            rate = s.time_weight + 0.5 * float(u @ self._input_weight @ u)
+            last = b == len(us)
+            chain.append(Edge(out.states[a : b + 1].copy(), b - a, (b - a) * s.dt * rate,
+                              float(np.abs(u).max()), last, control=u,
+                              end_distance=float(prob.goal_distance(out.states[b])[0])
+                              if last else None))
+        return node, chain
 
     def _expand(self, rng: np.random.Generator, run: _Run, target: np.ndarray,
                 to_goal: bool) -> None:
@@ -863,7 +960,7 @@ class RRTCoLearn:
         prob, s = self.problem, self.settings
         n = prob.system.n_states
         states = run.tree.states[: run.tree.n_nodes]
-        if run.exploring and (not to_goal or not self._within_reach(
+        if run.exploring and (self.model is None or not to_goal or not self._within_reach(
                 states, target, run.weight, run.wrapped)):
             parent, edge, kind = -1, None, "control"
         else:
@@ -881,17 +978,23 @@ class RRTCoLearn:
         run.outcomes["added"] += 1
         run.edges_by[kind] += 1
         run.last_growth = run.iterations
-        node = self._add_edge(run.tree, parent, edge)
+        node = self._add_node(run, parent, edge)
         end = edge.traj[-1:, :n]
         d_goal = edge.end_distance if edge.end_distance is not None else \
             float(prob.goal_distance(end)[0])
         if d_goal < run.best_goal:
             run.best_goal, run.since_nearer, run.since_growth_nearer = d_goal, 0, 0
-        if node == run.shifts.shape[0]:
-            run.shifts = np.concatenate([run.shifts, np.empty_like(run.shifts)])
-        run.shifts[node] = prob.system.wrap_shift(end)[0]
         if edge.hit:
             run.goal_node = node
+
+    def _add_node(self, run: _Run, parent: int, edge: Edge) -> int:
+        """`_add_edge` for a node the tree grows from: its learning-query shift recorded."""
+        node = self._add_edge(run.tree, parent, edge)
+        if node == run.shifts.shape[0]:
+            run.shifts = np.concatenate([run.shifts, np.empty_like(run.shifts)])
+        run.shifts[node] = self.problem.system.wrap_shift(
+            edge.traj[-1:, : self.problem.system.n_states])[0]
+        return node
 
     def _result(self, run: _Run, cpu: float, wall: float) -> Plan:
         """The plan: the path to the goal node, else to the node nearest the goal region,
@@ -907,6 +1010,15 @@ class RRTCoLearn:
         region = prob.goal_fn is not None or prob.goal_weights is not None
         input_low, input_high = sys.input_limits() if sys.input_limited else (None, None)
         search = run.search
+        lqr = run.lqr
+        # the LQR connection: its tries, or why it is off (also in the diagnosis)
+        lqr_extra = {} if lqr is None else {"goal_lqr": {"tries": lqr.tries} if lqr.lqr
+                                                     else {"off": lqr.off}}
+        diagnosis = None if run.goal_node >= 0 else diagnose(
+            run.outcomes, run.stalled, tree.n_nodes, prob.u_max is not None,
+            (float(prob.goal_distance(prob.start)[0]), float(dist[end])))
+        if diagnosis is not None and lqr is not None and lqr.lqr is None:
+            diagnosis += f"; LQR goal connection off: {lqr.off}"
         return Plan(
             system=sys.name, start=prob.start, goal=prob.goal,
             goal_tolerance=prob.goal_tolerance, time_weight=s.time_weight, dt=s.dt,
@@ -921,11 +1033,10 @@ class RRTCoLearn:
             extra={**({"goal_connected": run.connection is not None,
                        "connection": run.connection,
                        **({"funnel_states": len(search.funnel)} if search else {})}
-                      if run.connecting or search else {}),
+                      if run.connecting or search or lqr else {}),
+                   **lqr_extra,
                    **({"connections_switched_on": run.switched} if run.switched else {}),
                    "outcomes": run.outcomes, "stalled": run.stalled,
                    **({"edges_by": run.edges_by} if run.controls else {}),
-                   **({} if run.goal_node >= 0 else {"diagnosis": diagnose(
-                       run.outcomes, run.stalled, tree.n_nodes, prob.u_max is not None,
-                       (float(prob.goal_distance(prob.start)[0]), float(dist[end])))})},
+                   **({} if diagnosis is None else {"diagnosis": diagnosis})},
         )

@@ -1,0 +1,246 @@
+"""Goal connection by LQR about an equilibrium at the goal (``plan.goal_lqr``).
+
+Why: the planner's other goal connections need the learned functions to know the last
+stretch (shooting starts from U's guess, the funnel from extremals of the data's length) or
+need luck (a random control hits a ball of the goal tolerance). Where the goal is an
+equilibrium (hover, upright), the linearisation about it gives a feedback law that brings
+every state of its basin into the goal region, whatever the data. On the planar quadrotor's
+standard query (six coordinates, tolerance 0.1) random controls and the learned steering
+never get into the ball; this connection does so from the first nodes.
+
+What, for any `System` (nothing here depends on the system's name or on one query):
+
+* the equilibrium: (x_e, u_e) with f(x_e, u_e) = 0 next to (goal, the input box's centre),
+  by Gauss-Newton with minimum-norm steps, u kept in the input box; used only when the
+  goal test puts x_e within half the tolerance (so the loop can settle inside the region);
+* the model: the exact RK4 step map of the planner's step ``dt`` (the planner's own
+  integration, `rrtcolearn.integrate.propagate`) linearised at (x_e, u_e) by central
+  differences;
+* the weights, Bryson's rule from the problem's own boxes: Q_ii = dt / h_i^2 with h_i the
+  state constraint box's half-width (an angle's: half its turn), R_jj = dt / g_j^2 with g_j
+  the input box's half-width; an input without a finite limit is weighted by the plan's own
+  running cost (the system's R_jj);
+* the gain: the discrete Riccati equation (`scipy.linalg.solve_discrete_are`); the connection
+  stays off when there is no equilibrium, no solution or the closed loop is unstable;
+* the connection: u = clip(u_e - K (x - x_e)) recomputed and held for each RK4 step up to
+  ``max_steps`` (the planner's ``funnel_duration``), cut at the first state in the goal
+  region; it fails at a state outside the constraint box or in an obstacle, and as soon as
+  the Lyapunov value (x - x_e)' P (x - x_e) exceeds its value at the start (the state is not
+  in the saturated loop's basin: aborting there keeps failed tries cheap).
+
+Without finite input limits the input is not clipped (the plain LQR law) unless the problem
+truncates it (``u_max``: |u_j| <= u_max), which then is the box.
+
+The loop is plain numpy around the compiled one-step `propagate`: about 15 us per RK4 step
+on one core, and the Lyapunov abort ends most failed tries within a few steps, so a
+compiled loop (a numba kernel per system, seconds to compile in each process) would not pay.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import solve_discrete_are
+
+from rrtcolearn.integrate import propagate
+from rrtcolearn.planning.problem import PlanningProblem
+
+__all__ = ["GoalLQR", "LQRTry", "build_goal_lqr", "equilibrium", "step_jacobians"]
+
+_GN_ITERATIONS = 30
+_EQ_TOL = 1e-9  # |f(x_e, u_e)| relative to 1 + |f(goal, u_0)|
+_FD_STEP = 1e-6  # central differences, relative to 1 + |value|
+_GOAL_CHECK = 16  # the goal test runs on blocks of this many new states
+
+
+def _jacobian(fun, z: np.ndarray) -> np.ndarray:
+    """(k, len(z)) central-difference Jacobian of ``fun`` (rows (N, len(z)) -> (N, k)), all
+    perturbed points in one call."""
+    d = z.size
+    h = _FD_STEP * (1.0 + np.abs(z))
+    pts = np.repeat(z[None], 2 * d, axis=0)
+    pts[np.arange(d), np.arange(d)] += h
+    pts[d + np.arange(d), np.arange(d)] -= h
+    vals = fun(pts)
+    return ((vals[:d] - vals[d:]) / (2.0 * h[:, None])).T
+
+
+def equilibrium(system, goal: np.ndarray, u_low: np.ndarray, u_high: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, float]:
+    """(x_e, u_e, relative residual): Gauss-Newton on f(x, u) = 0 from (goal, the input box's
+    centre; 0 where unbounded) with minimum-norm steps (least change of x and u), u clipped
+    into [u_low, u_high] after each step."""
+    n = system.n_states
+    centre = 0.5 * (u_low + u_high)
+    u = np.where(np.isfinite(centre), centre, np.clip(0.0, u_low, u_high))
+    x = np.asarray(goal, dtype=np.float64).copy()
+
+    def f(z: np.ndarray) -> np.ndarray:
+        return system.dynamics(z[:, :n], z[:, n:])
+
+    scale = 1.0 + float(np.linalg.norm(f(np.concatenate([x, u])[None])[0]))
+    z = np.concatenate([x, u])
+    r = f(z[None])[0]
+    for _ in range(_GN_ITERATIONS):
+        if not np.all(np.isfinite(r)) or np.linalg.norm(r) <= 1e-3 * _EQ_TOL * scale:
+            break
+        step = np.linalg.lstsq(_jacobian(f, z), -r, rcond=None)[0]
+        z = z + step
+        z[n:] = np.clip(z[n:], u_low, u_high)
+        r = f(z[None])[0]
+    res = float(np.linalg.norm(r)) / scale if np.all(np.isfinite(r)) else np.inf
+    return z[:n], z[n:], res
+
+
+def step_jacobians(system, x: np.ndarray, u: np.ndarray, dt: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(A (n, n), B (n, m)): the Jacobians of the RK4 step map x -> x(dt) under a held u
+    (the planner's own integration) at (x, u), by central differences."""
+    n = system.n_states
+
+    def step(z: np.ndarray) -> np.ndarray:
+        return np.array([propagate(system, r[:n], r[n:], dt, 1)[1] for r in z])
+
+    jac = _jacobian(step, np.concatenate([x, u]))
+    return jac[:, :n], jac[:, n:]
+
+
+@dataclass(frozen=True)
+class LQRTry:
+    """One closed-loop run from a node: its states (k + 1, n) from the node's, the input held
+    over each step (k, m), and how it ended: "reached" (its last state is in the goal
+    region), "basin" (the Lyapunov value rose above its start value), "box" (it left the
+    constraint box or overflowed), "obstacle" or "timeout" (``max_steps`` without reaching)."""
+
+    states: np.ndarray
+    inputs: np.ndarray
+    end: str
+
+    @property
+    def reached(self) -> bool:
+        return self.end == "reached"
+
+
+@dataclass(frozen=True)
+class GoalLQR:
+    """The LQR feedback about the goal's equilibrium (`build_goal_lqr` makes it).
+
+    x_e, u_e : the equilibrium; K (m, n) the gain, P (n, n) the Riccati solution (the
+    Lyapunov function (x - x_e)' P (x - x_e)); u_low, u_high the clipping box (+-inf where
+    free); ``spectral_radius`` that of the closed loop A - B K.
+    """
+
+    problem: PlanningProblem
+    dt: float
+    x_e: np.ndarray
+    u_e: np.ndarray
+    K: np.ndarray
+    P: np.ndarray
+    u_low: np.ndarray
+    u_high: np.ndarray
+    spectral_radius: float
+
+    def offset(self, x: np.ndarray) -> np.ndarray:
+        """(N, n) x - x_e, angle coordinates as the goal test compares them (modulo a turn
+        with ``wrap_goal``, else plain)."""
+        e = np.atleast_2d(x) - self.x_e
+        angles = list(self.problem.goal_angles)
+        if angles:
+            e[:, angles] = np.mod(e[:, angles] + np.pi, 2.0 * np.pi) - np.pi
+        return e
+
+    def value(self, x: np.ndarray) -> np.ndarray:
+        """(N,) the Lyapunov value (x - x_e)' P (x - x_e) of states (N, n)."""
+        e = self.offset(x)
+        return np.einsum("ij,jk,ik->i", e, self.P, e)
+
+    def run(self, x0: np.ndarray, max_steps: int, box: tuple[np.ndarray, np.ndarray],
+            goal_mask, validity=None) -> LQRTry:
+        """The closed loop from ``x0``: u = clip(u_e - K (x - x_e)) held for each RK4 step,
+        until a state is in the goal region (``goal_mask``: states (N, n) -> (N,) bool, the
+        planner's goal test), for at most ``max_steps`` steps. It stops unreached at a state
+        outside ``box`` (the constraint box, +-inf where free) or not finite (that state
+        dropped), once the Lyapunov value exceeds its start value, and at a state that
+        ``validity`` (the obstacle checker: states -> (N,) bool) rejects. The goal test and
+        the obstacle check run on blocks of states, so a failed try ends within a block."""
+        sys, dt = self.problem.system, self.dt
+        low, high = box
+        x_e, u_e, K, P = self.x_e, self.u_e, self.K, self.P
+        angles = list(self.problem.goal_angles)
+        states = np.empty((max_steps + 1, x0.size))
+        inputs = np.empty((max_steps, u_e.size))
+        states[0] = x0
+        e = self.offset(x0[None])[0]
+        v0 = float(e @ P @ e)
+        x = x0
+        checked = 0
+        for k in range(max_steps):
+            u = np.minimum(np.maximum(u_e - K @ e, self.u_low), self.u_high)
+            nxt = propagate(sys, x, u, dt, 1)[1]
+            if not (np.all(low <= nxt) and np.all(nxt <= high)):  # NaN fails too
+                return LQRTry(states[: k + 1], inputs[:k], "box")
+            states[k + 1], inputs[k] = nxt, u
+            e = nxt - x_e
+            if angles:
+                e[angles] = np.mod(e[angles] + np.pi, 2.0 * np.pi) - np.pi
+            x = nxt
+            last = k + 1 == max_steps
+            rose = float(e @ P @ e) > v0
+            if (k + 1) % _GOAL_CHECK == 0 or last or rose:
+                block = states[checked + 1 : k + 2]
+                hits = np.flatnonzero(goal_mask(block))
+                end = checked + int(hits[0]) + 1 if hits.size else k + 1
+                if validity and not validity(states[checked + 1 : end + 1]).all():
+                    return LQRTry(states[: end + 1], inputs[:end], "obstacle")
+                if hits.size:
+                    return LQRTry(states[: end + 1], inputs[:end], "reached")
+                checked = k + 1
+                if rose:  # outside the basin: no Lyapunov descent
+                    return LQRTry(states[: k + 2], inputs[: k + 1], "basin")
+        return LQRTry(states, inputs, "timeout")
+
+
+def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray | None = None
+                   ) -> GoalLQR | str:
+    """The LQR connection for ``problem`` at the planner's step ``dt``, or why there is none
+    (a one-line reason). ``input_weight`` (m, m) is the running cost's R, the weight of
+    inputs without finite limits (identity if not given)."""
+    sys = problem.system
+    m = sys.n_inputs
+    u_low, u_high = (np.array(b, dtype=np.float64) for b in sys.input_limits())
+    if problem.u_max is not None:
+        u_low, u_high = np.maximum(u_low, -problem.u_max), np.minimum(u_high, problem.u_max)
+    with np.errstate(all="ignore"):
+        x_e, u_e, res = equilibrium(sys, problem.goal, u_low, u_high)
+    if not res <= _EQ_TOL:
+        return (f"the goal is no equilibrium for inputs in the box (|f(x, u)| >= "
+                f"{res:.2g} relative, at best)")
+    d_e = float(problem.goal_distance(x_e[None])[0])
+    if not d_e <= 0.5 * problem.goal_tolerance:
+        return (f"the goal is no equilibrium: the nearest equilibrium found lies {d_e:.3g} "
+                "from the goal region, more than half the tolerance")
+    with np.errstate(all="ignore"):
+        A, B = step_jacobians(sys, x_e, u_e, dt)
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
+        return "the linearisation at the equilibrium is not finite"
+    half_x = 0.5 * (problem.state_high - problem.state_low)
+    half_x[list(sys.angle_dims)] = np.pi  # an angle: half a turn
+    half_x = np.where(np.isfinite(half_x) & (half_x > 0), half_x, 1.0)
+    half_u = 0.5 * (u_high - u_low)
+    r_cost = np.diag(np.eye(m) if input_weight is None else input_weight)
+    r_diag = np.where(np.isfinite(half_u) & (half_u > 0), 1.0 / half_u**2,
+                      np.where(r_cost > 0, r_cost, 1.0))
+    Q, R = np.diag(dt / half_x**2), np.diag(dt * r_diag)
+    try:
+        with np.errstate(all="ignore"):
+            P = solve_discrete_are(A, B, Q, R)
+            K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return f"no LQR solution at the equilibrium ({exc})"
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(K))):
+        return "no LQR solution at the equilibrium"
+    rho = float(np.abs(np.linalg.eigvals(A - B @ K)).max())
+    if not rho < 1.0:
+        return f"the LQR closed loop is unstable (spectral radius {rho:.4g})"
+    return GoalLQR(problem, float(dt), x_e, u_e, K, 0.5 * (P + P.T), u_low, u_high, rho)

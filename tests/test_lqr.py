@@ -1,0 +1,144 @@
+"""The LQR goal connection (plan.goal_lqr, planning/lqr.py) on the planar quadrotor, planned
+without learned functions (random-control edges and the connection only): its edges
+re-simulate exactly within the input and state boxes, obstacles are avoided, the same seed
+grows the same tree, a goal that is no equilibrium switches it off."""
+
+import numpy as np
+import pytest
+
+from rrtcolearn.config import PAPER, PlanConfig
+from rrtcolearn.evaluate import resimulate
+from rrtcolearn.integrate import propagate
+from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
+from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
+from rrtcolearn.planning.termination import TerminationCondition
+from rrtcolearn.systems import make
+from rrtcolearn.systems.quadrotor import F_MAX, HOVER_THRUST, make_quadrotor
+
+WALL = {"type": "box", "low": [-0.15, -1.0, -10.0, -10.0, -10.0, -20.0],
+        "high": [0.15, 0.1, 10.0, 10.0, 10.0, 20.0]}
+
+
+@pytest.fixture(scope="module")
+def quad():
+    return make_quadrotor()
+
+
+def _problem(quad, goal=None, **kw):
+    d = quad.defaults
+    return PlanningProblem.create(quad, d["start"], d["goal"] if goal is None else goal, 0.1,
+                                  **kw)
+
+
+def _plan(problem, seed, iterations=3000, **settings):
+    planner = RRTCoLearn(problem, None, PlannerSettings(control_edges=True, max_duration=0.5,
+                                                        **settings))
+    return planner.solve(TerminationCondition(None, iterations), seed)
+
+
+def test_the_setting_defaults_to_auto_and_the_paper_has_none():
+    assert PlanConfig().goal_lqr is None and PlannerSettings().goal_lqr is None
+    assert PAPER["plan"]["goal_lqr"] is False
+
+
+def test_hover_equilibrium_gain_and_a_stable_loop(quad):
+    lqr = build_goal_lqr(_problem(quad), 0.01)
+    assert isinstance(lqr, GoalLQR)
+    np.testing.assert_allclose(lqr.x_e, quad.defaults["goal"], atol=1e-9)
+    np.testing.assert_allclose(lqr.u_e, [HOVER_THRUST, HOVER_THRUST], rtol=1e-9)
+    assert lqr.spectral_radius < 1.0
+    np.testing.assert_allclose(lqr.u_low, [0.0, 0.0])
+    np.testing.assert_allclose(lqr.u_high, [F_MAX, F_MAX])
+
+
+def test_without_input_limits_the_input_is_free_or_the_truncation_box(pendulum):
+    free = build_goal_lqr(PlanningProblem.create(pendulum, [-np.pi, 0], [0, 0], 0.1), 0.01)
+    assert isinstance(free, GoalLQR) and np.all(np.isinf(free.u_high))
+    cut = build_goal_lqr(PlanningProblem.create(pendulum, [-np.pi, 0], [0, 0], 0.1,
+                                                u_max=2.0), 0.01)
+    np.testing.assert_allclose([cut.u_low[0], cut.u_high[0]], [-2.0, 2.0])
+
+
+def _check_path(quad, plan, problem):
+    """Every edge of the path re-simulates exactly; inputs in the box, states in the box and
+    outside the obstacles."""
+    assert plan.solved and plan.extra["connection"] == "lqr"
+    r = resimulate(quad, plan)
+    assert r["max_gap"] < 1e-9 and r["max_cost_gap"] < 1e-9
+    low, high = quad.input_limits()
+    tree = plan.tree
+    lqr_links = 0
+    for node in plan.path_nodes[1:]:
+        u, traj = tree.controls[node], tree.trajectories[node]
+        assert np.all(np.isfinite(u)), "the path holds control edges only"
+        assert np.all(low <= u) and np.all(u <= high)
+        # the stored states are the RK4 of the held input from the parent
+        np.testing.assert_allclose(traj, propagate(quad, traj[0], u, plan.dt, len(traj) - 1),
+                                   rtol=0, atol=1e-12)
+        assert problem.within_bounds(traj).all()
+        if problem.validity:
+            assert problem.validity(traj).all()
+        lqr_links += 1
+    assert lqr_links > 1
+    assert problem.goal_distance(tree.states[plan.path_nodes[-1]])[0] <= 0.1
+
+
+def test_standard_query_solved_with_default_settings(quad):
+    """goal_lqr auto: switched on once the tree stalls near the goal, then it connects."""
+    problem = _problem(quad)
+    for seed in range(2):
+        p = _plan(problem, seed)
+        assert "lqr" in p.extra["connections_switched_on"]
+        _check_path(quad, p, problem)
+
+
+def test_lqr_edges_resimulate_within_the_boxes(quad):
+    problem = _problem(quad)
+    p = _plan(problem, 0, goal_lqr=True)
+    assert p.iterations < 50 and "connections_switched_on" not in p.extra
+    _check_path(quad, p, problem)
+
+
+def test_obstacles_are_avoided(quad):
+    problem = _problem(quad, obstacles=[WALL])
+    free = _plan(_problem(quad), 1, goal_lqr=True)
+    # the connection's path without the wall runs through it
+    states = np.concatenate([free.tree.trajectories[i] for i in free.path_nodes[1:]])
+    assert not problem.validity(states).all()
+    p = _plan(problem, 1, goal_lqr=True)
+    _check_path(quad, p, problem)
+    assert p.extra["goal_lqr"]["tries"] > 1
+
+
+def test_same_seed_same_tree(quad):
+    problem = _problem(quad, obstacles=[WALL])
+    a, b = (_plan(problem, 1, goal_lqr=True).to_dict() for _ in range(2))
+    assert a["tree"] == b["tree"] and a["path"] == b["path"]
+
+
+def test_a_goal_that_is_no_equilibrium_switches_it_off(quad):
+    moving = [1.0, 0.0, 0.0, 1.0, 0.0, 0.0]  # at 1 m/s: no input holds it
+    reason = build_goal_lqr(_problem(quad, moving), 0.01)
+    assert isinstance(reason, str) and "no equilibrium" in reason
+    p = _plan(_problem(quad, moving), 0, iterations=100, goal_lqr=True)
+    assert not p.solved and p.iterations == 100
+    assert "no equilibrium" in p.extra["goal_lqr"]["off"]
+    assert "LQR goal connection off" in p.extra["diagnosis"]
+    # auto: switched on (and found off) once the tree stalls; the planner runs on
+    auto = _plan(_problem(quad, moving), 0, iterations=600)
+    assert auto.iterations == 600 and "off" in auto.extra["goal_lqr"]
+
+
+def test_off_grows_the_tree_without_it(quad):
+    p = _plan(_problem(quad), 0, iterations=300, goal_lqr=False)
+    assert "goal_lqr" not in p.extra and p.extra.get("connection") is None
+
+
+def test_a_system_without_an_input_box_needs_learned_functions():
+    from rrtcolearn.errors import ConfigError
+
+    system = make("double_integrator")
+    problem = PlanningProblem.create(system, [-1.0, 0.0], [1.0, 0.0], 0.1)
+    with pytest.raises(ConfigError, match="random-control"):
+        RRTCoLearn(problem, None, PlannerSettings(goal_lqr=True))
