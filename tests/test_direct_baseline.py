@@ -9,10 +9,10 @@ pytest.importorskip("casadi")
 
 from rrtcolearn.baselines.base import ControlPath, path_metrics, simulate_controls
 from rrtcolearn.baselines.direct import (
-    _rk4_pendulum,
     casadi_available,
     dataset_points,
     execute,
+    execute_controls,
     fit_direct_model,
     generate_direct_dataset,
     get_solver,
@@ -46,7 +46,7 @@ def _quad_cost(sol, w: float, n: int = 200_001) -> float:
 def _fine_end(sol, steps: int = 20_000) -> np.ndarray:
     """End state of the collocation control integrated with a fine RK4 (exact T)."""
     t = sol.duration * (np.arange(steps) + 0.5) / steps
-    return _rk4_pendulum(sol.x0, sol.control_at(t), sol.duration / steps)[-1]
+    return execute_controls(sol.x0, sol.control_at(t), sol.duration / steps)[-1]
 
 
 def test_casadi_available():

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rrtcolearn.integrate import propagate_controls
 from rrtcolearn.systems.base import System
 
 
@@ -39,18 +40,8 @@ class BaselineResult:
 
 def simulate_controls(system: System, path: ControlPath, dt: float) -> np.ndarray:
     """States (S+1, n) at every RK4 step of ``dt`` along the path."""
-    x = np.asarray(path.start, dtype=np.float64)[None, :]
-    out = [x[0].copy()]
-    for u, duration in zip(path.controls, path.durations, strict=True):
-        u = np.asarray(u, dtype=np.float64)[None, :]
-        for _ in range(round(duration / dt)):
-            k1 = system.dynamics(x, u)
-            k2 = system.dynamics(x + 0.5 * dt * k1, u)
-            k3 = system.dynamics(x + 0.5 * dt * k2, u)
-            k4 = system.dynamics(x + dt * k3, u)
-            x = x + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-            out.append(x[0].copy())
-    return np.array(out)
+    steps = np.round(np.asarray(path.durations, dtype=np.float64) / dt).astype(np.int64)
+    return propagate_controls(system, path.start, path.controls, steps, dt)
 
 
 def path_metrics(system: System, path: ControlPath | None, dt: float, time_weight: float,

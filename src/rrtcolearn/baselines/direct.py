@@ -35,16 +35,15 @@ leave-one-solve-out distances (1.27 there, which accepts 72 % of held-out cheap 
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 
-import numba
 import numpy as np
 
 from rrtcolearn.baselines.base import BaselineResult, ControlPath, path_metrics
+from rrtcolearn.integrate import propagate_controls
 from rrtcolearn.learn.models import CostToGoRegressor, ValidityClassifier
 from rrtcolearn.learn.neighbours import NeighbourIndex
 from rrtcolearn.systems.pendulum import make_pendulum
@@ -227,22 +226,17 @@ def get_solver(n_intervals: int = N_INTERVALS) -> CollocationSolver:
 # execution of a collocation solution as piecewise-constant inputs
 
 
-@numba.njit(cache=True)
-def _rk4_pendulum(x0, u, dt):  # pragma: no cover - compiled
-    """States (K, 2) after each RK4 step of ``dt`` under the constant inputs u (K,)."""
-    out = np.empty((u.shape[0], 2))
-    th, om = x0[0], x0[1]
-    for k in range(u.shape[0]):
-        uk = u[k]
-        a1, b1 = om, math.sin(th) + uk
-        a2, b2 = om + 0.5 * dt * b1, math.sin(th + 0.5 * dt * a1) + uk
-        a3, b3 = om + 0.5 * dt * b2, math.sin(th + 0.5 * dt * a2) + uk
-        a4, b4 = om + dt * b3, math.sin(th + dt * a3) + uk
-        th = th + dt / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-        om = om + dt / 6.0 * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
-        out[k, 0] = th
-        out[k, 1] = om
-    return out
+@lru_cache(maxsize=1)
+def _pendulum():
+    """The pendulum, built once per process (its dynamics execute every edge)."""
+    return make_pendulum()
+
+
+def execute_controls(x0: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+    """States (K, 2) after each RK4 step of ``dt`` under the inputs u (K,), each held for one
+    step (`rrtcolearn.integrate.propagate_controls` on the pendulum's own dynamics)."""
+    return propagate_controls(_pendulum(), x0, np.asarray(u)[:, None],
+                              np.ones(len(u), dtype=np.int64), dt)[1:]
 
 
 def executed_controls(sol: CollocationSolution, dt: float = 0.01,
@@ -257,7 +251,7 @@ def execute(sol: CollocationSolution, dt: float = 0.01, u_max: float | None = No
             ) -> tuple[np.ndarray, np.ndarray]:
     """Executed inputs (K,) and the RK4 states (K, 2) after each step, from ``sol.x0``."""
     u = executed_controls(sol, dt, u_max)
-    return u, _rk4_pendulum(sol.x0, u, dt)
+    return u, execute_controls(sol.x0, u, dt)
 
 
 def polish(solver: CollocationSolver, sol: CollocationSolution, *, time_weight: float,

@@ -12,6 +12,7 @@ import time
 import numpy as np
 
 from rrtcolearn.baselines.base import BaselineResult, ControlPath
+from rrtcolearn.integrate import propagate
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.termination import TerminationCondition
 
@@ -19,13 +20,8 @@ from rrtcolearn.planning.termination import TerminationCondition
 def _propagate(system, x: np.ndarray, u: np.ndarray, steps: int, dt: float) -> np.ndarray:
     """RK4 of rows x (K, n) under constant inputs u (K, m): states (steps, K, n)."""
     out = np.empty((steps, *x.shape))
-    for s in range(steps):
-        k1 = system.dynamics(x, u)
-        k2 = system.dynamics(x + 0.5 * dt * k1, u)
-        k3 = system.dynamics(x + 0.5 * dt * k2, u)
-        k4 = system.dynamics(x + dt * k3, u)
-        x = x + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-        out[s] = x
+    for k in range(len(x)):
+        out[:, k] = propagate(system, x[k], u[k], dt, steps)[1:]
     return out
 
 
