@@ -19,6 +19,7 @@ from rrtcolearn.experiment.layout import (
     epoch_config,
     experiment_problems,
     planning_problem,
+    problem_system,
     write_csv,
 )
 from rrtcolearn.experiment.ompl_format import LogExperiment, write_database, write_log
@@ -163,7 +164,7 @@ def write_outputs(exp_dir: Path, config: Config, rows: list[dict], offline: list
                   "cpu_s_per_solve"]
     write_csv(exp_dir / "offline.csv", offline, off_fields)
     experiments = []
-    system = config.system.name
+    system = problem_system(config, experiment_problems(config)[0]).name
     label = "".join(c if c.isalnum() or c in "._-" else "-" for c in system)
     for pr in experiment_problems(config):
         planners: dict[str, list[dict]] = {}
@@ -222,7 +223,7 @@ def _summary(config: Config, rows, offline, grid, skipped) -> dict:
         "planners": table,
         "d_grid": grid,
         "skipped_planners": skipped,
-        "system": config.system.name,
+        "system": problem_system(config, problems[0]).name,
     }
 
 

@@ -37,7 +37,7 @@ QUICK = {"epochs": 2, "runs_per_epoch": 30, "direct_runs_per_epoch": 3, "direct_
          "d_grid": [0.02, 0.05, 0.1], "d_grid_plans": 10}
 # another system's offline phase alone takes minutes (cart-pole, acrobot: ~3 min CPU)
 QUICK_OTHER = {"epochs": 1, "runs_per_epoch": 3, "runs_per_task": 1, "d_grid": [],
-               "time_limit": 60.0}
+               "time_limit": 30.0}
 
 
 def quick_settings(system: str) -> dict:
