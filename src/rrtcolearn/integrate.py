@@ -1,9 +1,16 @@
-"""Compiled RK4 integration of the state+costate(+cost) ODEs.
+"""The package's one RK4 family.
 
-``z = (x, lambda, cost)`` of length ``2n+1``; ``rhs(z, w, out)`` is the system's compiled
-right-hand side, writing the state+costate derivative and the running cost (last entry).
-Batched rollouts stop per row (paper Experiments: when the cost exceeds a bound or the state
-leaves a ball around its start), so no row costs more steps than it needs.
+- The compiled kernels of the state+costate(+cost) ODEs (``rollout``, ``rollout_batch``):
+  ``z = (x, lambda, cost)`` of length ``2n+1``; ``rhs(z, w, out)`` is the system's compiled
+  right-hand side, writing the state+costate derivative and the running cost (last entry).
+  Batched rollouts stop per row (paper Experiments: when the cost exceeds a bound or the state
+  leaves a ball around its start), so no row costs more steps than it needs.
+- `propagate` / `propagate_controls`: the plain dynamics ``x' = f(x, u)`` under constant /
+  piecewise-constant inputs (``propagate_jit``); RRT-CoLearn's random-control edges and every
+  peer (random-control RRT, OMPL's planners, the direct method) execute and re-simulate their
+  paths with them.
+- `rk4_step`: the same step in numpy for any vector field, the reference the kernels are
+  checked against and the fallback for a system without compiled kernels.
 
 numba can neither cache a function that receives another compiled function as an argument
 nor one that closes over it, so the kernels are kept as source and compiled into each system
