@@ -297,6 +297,9 @@ class ExperimentConfig(_Section):
         None, gt=0, description="input bound of the random-control peers (random-rrt, "
         "ompl-*) on problems whose inputs are unbounded; none: they skip such problems")
     time_limit: float = Field(10.0, gt=0)
+    cpu_time_limit: float | None = Field(
+        None, gt=0, description="also stop after this many CPU seconds of the planning "
+        "process: every planner gets the same CPU on a loaded machine")
     max_iterations: int | None = Field(
         None, ge=1, description="also stop after this many iterations (every planner that counts "
         "iterations; OMPL's bindings count none): a limit that does not depend on the "

@@ -37,7 +37,7 @@ QUICK = {"epochs": 2, "runs_per_epoch": 30, "direct_runs_per_epoch": 3, "direct_
          "d_grid": [0.02, 0.05, 0.1], "d_grid_plans": 10}
 # another system's offline phase alone takes minutes (cart-pole, acrobot: ~3 min CPU)
 QUICK_OTHER = {"epochs": 1, "runs_per_epoch": 3, "runs_per_task": 1, "d_grid": [],
-               "time_limit": 30.0}
+               "time_limit": 120.0, "cpu_time_limit": 30.0}
 
 
 def quick_settings(system: str) -> dict:
@@ -104,8 +104,8 @@ def run_row(task: RunTask, seed: int) -> dict:
     """One planning run: the plan, re-simulated and checked against the problem (`replay`)."""
     e = task.config.experiment
     problem = planning_problem(task.config, task.problem)
-    plan = make_planner(task).solve(problem, TerminationCondition(e.time_limit,
-                                                                  e.max_iterations), seed)
+    limit = TerminationCondition(e.time_limit, e.max_iterations, e.cpu_time_limit)
+    plan = make_planner(task).solve(problem, limit, seed)
     check = replay(problem, plan)
     return {"solved": plan.solved and check["reaches_goal"], "status": plan.status,
             "time": plan.planning_cpu_s, "wall_s": plan.planning_time_s,
