@@ -30,6 +30,12 @@ PAPER = {"plan_time_s_median": 2.36, "nodes_median": 84, "nodes_std": 180,
          "steer_mse_median": 0.11, "offline_s_per_epoch": 25 * 60}
 
 
+def _limit(config: Config) -> TerminationCondition:
+    """The runs' wall and CPU time limits."""
+    e = config.experiment
+    return TerminationCondition(e.time_limit, e.max_iterations, e.cpu_time_limit)
+
+
 def _stats(rows: list[dict]) -> dict:
     solved = [r for r in rows if r.get("solved")]
     t = np.array([r["time"] for r in rows if r.get("time") is not None
@@ -73,7 +79,7 @@ def d_grid_search(exp_dir: Path, config: Config) -> list[dict]:
                                      cfg.generate.max_state_distance)
         problem = planning_problem(config, pr, system)
         plans = [RRTCoLearnPlanner(model).solve(
-            problem, TerminationCondition(config.experiment.time_limit), seed)
+            problem, _limit(config), seed)
             for seed in range(config.experiment.d_grid_plans)]
         rows.append({"d": d, "kept_points": len(cleaned),
                      "cost_rel_error_median": float(np.median(err.cost_rel_error)),
@@ -112,7 +118,7 @@ def _figures(exp_dir: Path, config: Config, rows: list[dict], grid: list[dict]) 
         model = pipeline.load_model(exp_dir / "epoch-00" / dataset_name(main))
         plan = RRTCoLearnPlanner(model).solve(
             planning_problem(config, main, model.system),
-            TerminationCondition(config.experiment.time_limit), typical["seed"])
+            _limit(config), typical["seed"])
         fig, ax = plt.subplots(figsize=(6.4, 4.8))
         plot_tree(ax, plan)
         save_figure(fig, exp_dir / "tree.png")
