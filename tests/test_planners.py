@@ -116,3 +116,24 @@ def test_a_broken_planner_fails_the_check(pendulum):
 
     with pytest.raises(planners.PlannerCheckError, match="path cost"):
         planners.check_planner(Lying(), easy_problem("pendulum"))
+
+
+def test_propagate_is_one_rk4_with_or_without_compiled_kernels(pendulum):
+    """A System built by hand without ``propagate_jit`` propagates with the numpy RK4 step
+    (`integrate.rk4_step`): the same states as the compiled kernel, and the same box stop."""
+    import dataclasses
+
+    from rrtcolearn.integrate import propagate, propagate_controls
+
+    plain = dataclasses.replace(pendulum, propagate_jit=None)
+    x0, u = np.array([-3.0, 0.2]), np.array([1.3])
+    np.testing.assert_allclose(propagate(plain, x0, u, 0.01, 150),
+                               propagate(pendulum, x0, u, 0.01, 150), rtol=0, atol=1e-12)
+    high = np.array([np.inf, 1.0])
+    a = propagate(plain, x0, u, 0.01, 500, high=high)
+    b = propagate(pendulum, x0, u, 0.01, 500, high=high)
+    assert len(a) == len(b) < 501 and a[-1, 1] > 1.0
+    steps = np.array([30, 20])
+    path = propagate_controls(pendulum, x0, [[1.3], [-0.5]], steps, 0.01)
+    assert path.shape == (51, 2)
+    np.testing.assert_array_equal(path[:31], propagate(pendulum, x0, u, 0.01, 30))
