@@ -447,7 +447,7 @@ def experiment(
                                              "(default runs/<name>-experiment)")] = None,
     set_: SetOpt = None,
     quick: Annotated[bool, typer.Option(
-        "--quick", help="a few minutes: 2 epochs x 30 runs for the pendulum, 1 epoch x 3 "
+        "--quick", help="a few minutes: 2 epochs x 30 runs (peers 10) for the pendulum, 1 x 3 "
         "runs for another system")] = False,
     workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
     dask_local: DaskLocalOpt = None, system: SystemOpt = None,

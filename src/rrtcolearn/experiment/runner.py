@@ -33,8 +33,10 @@ from rrtcolearn.experiment.report import write_outputs
 from rrtcolearn.parallel import ExecutionSettings, map_tasks
 from rrtcolearn.planning.termination import TerminationCondition
 
-QUICK = {"epochs": 2, "runs_per_epoch": 30, "direct_runs_per_epoch": 3, "direct_pairs": 400,
-         "d_grid": [0.02, 0.05, 0.1], "d_grid_plans": 10}
+# the peers' failed runs take the whole limit: 10 runs each keep the pendulum's --quick short
+QUICK = {"epochs": 2, "runs_per_epoch": 30, "peer_runs_per_epoch": 10,
+         "direct_runs_per_epoch": 3, "direct_pairs": 400, "d_grid": [0.02, 0.05, 0.1],
+         "d_grid_plans": 10}
 # another system's offline phase alone takes minutes (cart-pole, acrobot: ~3 min CPU)
 QUICK_OTHER = {"epochs": 1, "runs_per_epoch": 3, "runs_per_task": 1, "d_grid": [],
                "time_limit": 120.0, "cpu_time_limit": 30.0}
