@@ -7,9 +7,9 @@ CPU). Each learned row has its own offline model, built by the library's pipelin
 ``pipeline.build_system(cfg)`` (``system.u_max``, ``time_weight``, ``limit_mode``), then
 `generate_data` (which gets the u_max only in truncate mode, ``cfg.system.truncation_limit``),
 `clean_data`, `pipeline.fit_functions`, and ``pipeline.plan``. The OMPL row is OMPL's
-control-based RRT (`run_ompl_isolated`: one forked process per seeded query, as the experiment
-runs it), its path priced with the same running cost w + u^2/2 (w = 1) by re-simulation
-(`path_metrics`); OMPL itself ignores cost.
+control-based RRT (`planners.make("ompl-RRT")`: one forked process per seeded query, as the
+experiment runs it), its path priced with the same running cost w + u^2/2 (w = 1) by re-simulation
+(`rrtcolearn.evaluate.replay`); OMPL itself ignores cost.
 
     python bench/limits_bench.py [--queries 100] [--rows a,b,...] [--time-limit 10]
 
@@ -23,8 +23,8 @@ the row's system (the symbolic derivation of a saturated system, ``build_system`
 it: see ``derive_s``). The learned rows plan seed by seed in turn (seed s on every row, then
 s + 1), so machine load falls on all of them alike and the ratio of two rows' medians is
 measured side by side. Max |u| and the path cost of RRT-CoLearn's solved paths are checked by
-re-integrating each path from the start (`resimulate_plan`). Prints the table and, last, one
-JSON line.
+re-integrating each path from the start (`rrtcolearn.evaluate.replay`). Prints the table
+and, last, one JSON line.
 """
 
 from __future__ import annotations
@@ -111,14 +111,16 @@ def build_model(name: str) -> tuple[pipeline.FittedModel, dict]:
 
 def plan_once(model: pipeline.FittedModel, seed: int, time_limit: float) -> dict:
     """One query: the figures of the table, the solved path re-integrated from the start."""
-    from rrtcolearn.experiment.runner import resimulate_plan
+    from rrtcolearn.evaluate import replay
+    from rrtcolearn.planning.problem import PlanningProblem
 
     p = pipeline.plan(model, START, GOAL, TOLERANCE, seed=seed, time_limit=time_limit)
     out = {"solved": p.solved, "cpu_s": p.planning_cpu_s, "wall_s": p.planning_time_s,
            "nodes": p.nodes, "stalled": bool(p.extra.get("stalled")),
            "outcomes": p.extra["outcomes"], "diagnosis": p.extra.get("diagnosis")}
     if p.solved:
-        check = resimulate_plan(model, p)
+        problem = PlanningProblem.create(model.system, START, GOAL, TOLERANCE, u_max=p.u_max)
+        check = replay(problem, p)
         out.update(cost=p.path_cost, duration=p.path_duration, max_abs_u=check["max_abs_u"],
                    resim_reaches_goal=check["reaches_goal"],
                    resim_cost_gap=abs(check["path_cost"] - p.path_cost))
@@ -127,16 +129,23 @@ def plan_once(model: pipeline.FittedModel, seed: int, time_limit: float) -> dict
 
 def ompl_once(u_max: float, w: float, seed: int, time_limit: float) -> dict:
     """OMPL's RRT on one seeded query in a fresh forked process; cost re-simulated with w."""
-    from rrtcolearn.baselines.ompl_planners import run_ompl_isolated
+    from rrtcolearn import planners
+    from rrtcolearn.evaluate import replay
+    from rrtcolearn.planning.problem import PlanningProblem
+    from rrtcolearn.planning.termination import TerminationCondition
+    from rrtcolearn.systems import make
 
-    r = run_ompl_isolated("RRT", START, GOAL, TOLERANCE, u_max=u_max, seed=seed,
-                          time_limit=time_limit, time_weight=w)
-    out = {"solved": r.solved, "cpu_s": r.cpu_s, "wall_s": r.wall_s, "nodes": r.nodes,
-           "ompl_status": r.status, "ompl_claimed_exact": r.extra.get("ompl_claimed_exact")}
-    if r.solved:  # path_metrics: w T + sum u_k^2 / 2 dt_k, re-simulated with RK4
-        out.update(cost=r.extra["path_cost"], duration=r.extra["path_duration"],
-                   cost_w01=r.extra["path_cost"] - (w - 0.1) * r.extra["path_duration"],
-                   max_abs_u=r.extra["max_abs_u"], resim_reaches_goal=r.extra["reaches_goal"])
+    problem = PlanningProblem.create(make("pendulum"), START, GOAL, TOLERANCE, u_max=u_max)
+    r = planners.make("ompl-RRT", time_weight=w).solve(
+        problem, TerminationCondition(time_limit), seed)
+    out = {"solved": r.solved, "cpu_s": r.planning_cpu_s, "wall_s": r.planning_time_s,
+           "nodes": r.nodes, "ompl_status": r.status,
+           "ompl_claimed_exact": r.extra.get("ompl_claimed_exact")}
+    if r.solved:  # replay: w T + sum u_k^2 / 2 dt_k, re-simulated with RK4
+        check = replay(problem, r)
+        out.update(cost=check["path_cost"], duration=check["path_duration"],
+                   cost_w01=check["path_cost"] - (w - 0.1) * check["path_duration"],
+                   max_abs_u=check["max_abs_u"], resim_reaches_goal=check["reaches_goal"])
     return out
 
 

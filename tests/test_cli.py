@@ -301,3 +301,23 @@ def test_bad_query_files(tiny_run, tmp_path, content, contains):
     assert not (tmp_path / "out").exists()  # nothing planned before every query checks out
     result = invoke("plan", "--model", str(tiny_run), "--queries", str(path), "--start=0,0")
     assert_one_line_error(result)
+
+def test_experiment_on_a_users_system(tmp_path, monkeypatch):
+    """`experiment --system module:attribute --quick`: the system's standard query is the one
+    problem, each peer that supports it runs beside rrtcolearn, the others are named."""
+    monkeypatch.chdir(Path(__file__).parents[1])
+    out = tmp_path / "exp"
+    result = invoke("experiment", "--system", "examples.damped_pendulum:make_damped_pendulum",
+                    "--quick", "--out", str(out), "--set", "generate.n_simulations=3000",
+                    "--set", "plan.goal_tolerance=0.3", "--set", "experiment.max_iterations=3000",
+                    "--set", "experiment.runs_per_epoch=2", "--set", "experiment.peer_u_max=2.0",
+                    "--set", 'experiment.planners=["rrtcolearn", "random-rrt", "direct"]')
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["system"] == "damped_pendulum" and summary["main_problem"] == "standard"
+    assert set(summary["planners"]["standard"]) == {"rrtcolearn", "random-rrt"}
+    assert "pendulum" in summary["skipped_planners"]["direct on standard"]
+    assert (out / "ompl" / "damped_pendulum-standard.log").is_file()
+    assert (out / "benchmark.db").is_file() and "random-rrt" in (out / "report.md").read_text()
+    result = invoke("experiment", "--system", "rocket", "--out", str(tmp_path / "x"))
+    assert_one_line_error(result, contains="unknown system")

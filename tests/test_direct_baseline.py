@@ -7,12 +7,11 @@ import pytest
 
 pytest.importorskip("casadi")
 
-from rrtcolearn.baselines.base import ControlPath, path_metrics, simulate_controls
 from rrtcolearn.baselines.direct import (
-    _rk4_pendulum,
     casadi_available,
     dataset_points,
     execute,
+    execute_controls,
     fit_direct_model,
     generate_direct_dataset,
     get_solver,
@@ -21,6 +20,10 @@ from rrtcolearn.baselines.direct import (
     save_direct_dataset,
     solve_direct_rrt,
 )
+from rrtcolearn.evaluate import replay
+from rrtcolearn.integrate import rk4_step
+from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.systems.pendulum import make_pendulum
 
 START, GOAL = [-np.pi, 0.0], [0.0, 0.0]
@@ -46,7 +49,7 @@ def _quad_cost(sol, w: float, n: int = 200_001) -> float:
 def _fine_end(sol, steps: int = 20_000) -> np.ndarray:
     """End state of the collocation control integrated with a fine RK4 (exact T)."""
     t = sol.duration * (np.arange(steps) + 0.5) / steps
-    return _rk4_pendulum(sol.x0, sol.control_at(t), sol.duration / steps)[-1]
+    return execute_controls(sol.x0, sol.control_at(t), sol.duration / steps)[-1]
 
 
 def test_casadi_available():
@@ -79,10 +82,12 @@ def test_execution_gap_and_polish():
     assert sol.success
     u, states = execute(sol, 0.01)
     assert len(u) == max(1, round(sol.duration / 0.01))
-    # the package's independent re-simulation agrees with the planner's compiled one
-    path = ControlPath(x0, u[:, None], np.full(len(u), 0.01))
-    np.testing.assert_allclose(simulate_controls(make_pendulum(), path, 0.01)[1:], states,
-                               atol=1e-10)
+    # the numpy reference RK4 of the plain dynamics agrees with the compiled execution
+    pend, x, ref = make_pendulum(), x0[None], []
+    for uk in u:
+        x = rk4_step(lambda z, uk=uk: pend.dynamics(z, np.array([[uk]])), x, 0.01)
+        ref.append(x[0])
+    np.testing.assert_allclose(np.array(ref), states, atol=1e-10)
     raw_gap = np.linalg.norm(states[-1] - x1)
     fixed = polish(solver, sol, time_weight=1.0, u_max=None)
     assert fixed.duration == pytest.approx(round(sol.duration / 0.01) * 0.01, abs=1e-9)
@@ -144,42 +149,53 @@ def test_model_thresholds(dataset):
         fit_direct_model(data, validity_threshold="median")
 
 
+def _problem(tol, u_max=None, obstacles=()):
+    return PlanningProblem.create(make_pendulum(), START, GOAL, tol, u_max=u_max,
+                                  obstacles=list(obstacles))
+
+
+def _limit(max_iterations=None):
+    return TerminationCondition(120.0, max_iterations, 30.0)
+
+
 def test_swing_up(model):
-    sys = make_pendulum()
-    res = solve_direct_rrt(model, START, GOAL, 0.2, seed=0, time_limit=120.0,
-                           cpu_time_limit=30.0)
+    prob = _problem(0.2)
+    res = solve_direct_rrt(model, prob, _limit(), 0)
     assert res.solved and res.status == "exact", res.extra
-    m = path_metrics(sys, res.path, 0.01, 1.0, np.array(GOAL), 0.2)
+    m = replay(prob, res)
     assert m["reaches_goal"]
-    np.testing.assert_allclose(res.path.durations, 0.01)
+    np.testing.assert_allclose([e["duration"] for e in res.edges()], 0.01)
     assert res.extra["resim_gap"] is not None and res.extra["edge_gap_max"] < 0.1
-    assert res.extra["final_goal_distance"] == pytest.approx(m["final_goal_distance"])
+    assert res.final_goal_distance == pytest.approx(m["final_goal_distance"])
     # the tree stores re-simulated states, so the path ends where the re-simulation does
     assert m["final_goal_distance"] <= 0.2
-    again = solve_direct_rrt(model, START, GOAL, 0.2, seed=0, time_limit=120.0,
-                             cpu_time_limit=30.0)
+    assert res.nodes == res.graph_states < res.tree.n_nodes + res.iterations
+    again = solve_direct_rrt(model, prob, _limit(), 0)
     assert (again.iterations, again.nodes) == (res.iterations, res.nodes)
-    np.testing.assert_array_equal(again.path.controls, res.path.controls)
+    np.testing.assert_array_equal(again.tree.controls[: again.tree.n_nodes],
+                                  res.tree.controls[: res.tree.n_nodes])
 
 
 def test_torque_limit_and_obstacle(model):
     sys = make_pendulum()
     block = {"type": "box", "low": [-3.0, 1.0], "high": [-2.4, 2.0]}
-    res = solve_direct_rrt(model, START, GOAL, 0.2, seed=1, time_limit=120.0,
-                           cpu_time_limit=30.0, u_max=3.0, obstacles=[block])
+    prob = _problem(0.2, 3.0, [block])
+    res = solve_direct_rrt(model, prob, _limit(), 1)
     assert res.solved, res.extra
     assert res.extra["collision"] > 0  # the obstacle did reject edges
-    assert np.abs(res.path.controls).max() <= 3.0 + 1e-12
-    x = simulate_controls(sys, res.path, 0.01)
+    assert res.max_abs_u <= 3.0 + 1e-12
+    x = np.concatenate(res.tree.trajectories[1:])
     x[:, 0] -= 2 * np.pi * np.floor((x[:, 0] + 1.5 * np.pi) / (2 * np.pi))
     inside = np.all((x >= block["low"]) & (x <= block["high"]), axis=1)
     assert not inside.any()
-    assert np.linalg.norm(x[-1] - GOAL) <= 0.2
+    assert np.linalg.norm(res.tree.states[res.path_nodes[-1]] - GOAL) <= 0.2
+    assert replay(prob, res)["reaches_goal"]
+    assert sys.name == "pendulum"
 
 
 def test_iteration_limit_without_solution(model):
-    res = solve_direct_rrt(model, START, GOAL, 0.1, seed=0, max_iterations=1)
+    res = solve_direct_rrt(model, _problem(0.1), TerminationCondition(10.0, 1), 0)
     assert res.iterations == 1 and not res.solved
     assert res.status in ("approximate", "timeout")
     with pytest.raises(ValueError):
-        solve_direct_rrt(model, START, GOAL, 0.1, polish_edges="sometimes")
+        solve_direct_rrt(model, _problem(0.1), _limit(), 0, polish_edges="sometimes")

@@ -9,13 +9,14 @@ from pathlib import Path
 import pytest
 
 from rrtcolearn.config import load_config
-from rrtcolearn.experiment.runner import ROW_FIELDS, rows_digest, run_experiment
+from rrtcolearn.experiment.layout import ROW_FIELDS
+from rrtcolearn.experiment.runner import rows_digest, run_experiment
 from rrtcolearn.parallel import ExecutionSettings
 
 TINY = [
     "generate.n_simulations=4000", "experiment.epochs=1", "experiment.runs_per_epoch=3",
     "experiment.time_limit=60.0", "experiment.max_iterations=300",
-    "experiment.runs_per_task=2",
+    "experiment.runs_per_task=2", "experiment.peer_u_max=5.0",
     'experiment.planners=["rrtcolearn", "random-rrt"]',
     'experiment.problems=[{name="unbounded", goal_tolerance=0.2}, '
     '{name="u2", u_max=2.0, goal_tolerance=0.2}]',

@@ -1,20 +1,19 @@
-"""OMPL's control planners as baselines: solved swing-ups, re-simulated, seeded, obstacle-aware.
+"""OMPL's control planners as peers: solved swing-ups, re-simulated, seeded, obstacle-aware,
+on any system.
 
-Every OMPL run goes through ``run_ompl_isolated`` (one fresh process each), so the pytest
-process never creates an OMPL random generator; results are cached per module.
+Every OMPL run is isolated (one fresh forked process each), so the pytest process never
+creates an OMPL random generator; results are cached per module.
 """
 
 import numpy as np
 import pytest
 
-from rrtcolearn.baselines.base import BaselineResult, ControlPath, path_metrics, simulate_controls
-from rrtcolearn.baselines.ompl_planners import (
-    _obstacle_free,
-    ompl_available,
-    run_ompl_isolated,
-    solve_ompl,
-)
-from rrtcolearn.planning.problem import PlanningProblem, ProblemError
+from rrtcolearn import planners
+from rrtcolearn.baselines.ompl_planners import OMPLPlanner, _goal_distance, _obstacle_free
+from rrtcolearn.evaluate import replay
+from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.termination import TerminationCondition
+from rrtcolearn.planning.tree import Plan
 
 pytest.importorskip("ompl")  # the module above imports ompl lazily, so this import works
 
@@ -25,112 +24,131 @@ BOX = {"type": "box", "low": [-2.0, 0.3], "high": [-1.2, 2.5]}
 _cache: dict = {}
 
 
-def run(planner: str, u_max: float, seed: int, box: bool = False) -> BaselineResult:
+def problem(pendulum, u_max: float, box: bool = False) -> PlanningProblem:
+    return PlanningProblem.create(pendulum, START, GOAL, TOL, u_max=u_max,
+                                  obstacles=[BOX] if box else [])
+
+
+def run(pendulum, planner: str, u_max: float, seed: int, box: bool = False) -> Plan:
     """One isolated OMPL run, cached by its arguments."""
     key = (planner, u_max, seed, box)
     if key not in _cache:
-        _cache[key] = run_ompl_isolated(planner, START, GOAL, TOL, u_max=u_max, seed=seed,
-                                        time_limit=10.0, obstacles=[BOX] if box else [])
+        _cache[key] = planners.make(f"ompl-{planner}").solve(
+            problem(pendulum, u_max, box), TerminationCondition(10.0), seed)
     return _cache[key]
 
 
-def check_path(pendulum, r: BaselineResult, u_max: float) -> dict:
-    """Re-simulate the returned path and check what the result claims about it."""
-    assert isinstance(r.path, ControlPath)
-    k = len(r.path.durations)
-    assert k > 0 and r.path.controls.shape == (k, 1)
-    np.testing.assert_array_equal(r.path.start, START)
-    steps = r.path.durations / 0.02
+def check_path(pendulum, r: Plan, u_max: float, box: bool = False) -> dict:
+    """Re-simulate the returned path and check what the plan claims about it."""
+    edges = r.edges()
+    assert len(edges) > 0 and all(len(e["control"]) == 1 for e in edges)
+    np.testing.assert_array_equal(r.start, START)
+    steps = np.array([e["duration"] for e in edges]) / 0.02
     np.testing.assert_allclose(steps, np.round(steps), atol=1e-9)
     assert np.all((np.round(steps) >= 1) & (np.round(steps) <= 25))
-    m = path_metrics(pendulum, r.path, 0.01, 1.0, GOAL, TOL)
-    assert m["max_abs_u"] <= u_max
-    assert m["final_goal_distance"] == pytest.approx(r.extra["final_goal_distance"])
+    m = replay(problem(pendulum, u_max, box), r)
+    assert m["max_abs_u"] <= u_max and m["inputs_in_box"]
+    assert m["final_goal_distance"] == pytest.approx(r.final_goal_distance)
+    assert m["path_cost"] == pytest.approx(r.path_cost, rel=1e-12)
     return m
 
 
-def test_available():
-    assert ompl_available()
+def test_available(pendulum):
+    assert OMPLPlanner().supports(problem(pendulum, 1.0)) is None
 
 
 @pytest.mark.parametrize("u_max", [1.0, 2.0])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_rrt_solves_swing_up(pendulum, u_max, seed):
-    r = run("RRT", u_max, seed)
-    assert r.planner == "ompl-rrt"
+    r = run(pendulum, "RRT", u_max, seed)
+    assert r.extra["planner"] == "ompl-RRT"
     assert r.solved and r.status == "exact" and r.extra["ompl_claimed_exact"]
-    assert r.wall_s < 10.0 and 0 < r.cpu_s < 10.0
-    assert r.nodes > 1
+    assert r.planning_time_s < 10.0 and 0 < r.planning_cpu_s < 10.0
+    assert r.nodes > 1 and r.nodes == r.graph_states
     assert r.extra["seeded_before_first_rng"]
     m = check_path(pendulum, r, u_max)
-    assert m["reaches_goal"] and m["final_goal_distance"] <= TOL
-    # OMPL's own propagation and the independent re-simulation agree on the end state
+    assert m["reaches_goal"] and m["final_goal_distance"] <= TOL and m["valid"]
+    # OMPL's own propagation and the re-execution agree on the end state
     assert r.extra["resim_end_gap"] < 1e-9
-    states = simulate_controls(pendulum, r.path, 0.01)
-    assert np.all((states >= pendulum.state_low) & (states <= pendulum.state_high))
 
 
-def test_same_seed_same_result():
-    a = run("RRT", 1.0, 0)
-    b = run_ompl_isolated("RRT", START, GOAL, TOL, u_max=1.0, seed=0, time_limit=10.0)
-    np.testing.assert_array_equal(a.path.controls, b.path.controls)
-    np.testing.assert_array_equal(a.path.durations, b.path.durations)
-    assert a.nodes == b.nodes
-    assert a.extra["final_goal_distance"] == b.extra["final_goal_distance"]
+def test_same_seed_same_result(pendulum):
+    a = run(pendulum, "RRT", 1.0, 0)
+    b = planners.make("ompl-RRT").solve(problem(pendulum, 1.0), TerminationCondition(10.0), 0)
+    np.testing.assert_array_equal(a.tree.controls[: a.nodes], b.tree.controls[: b.nodes])
+    np.testing.assert_array_equal([e["duration"] for e in a.edges()],
+                                  [e["duration"] for e in b.edges()])
+    assert a.nodes == b.nodes and a.final_goal_distance == b.final_goal_distance
     # seeds 0 and 1 are distinct runs (OMPL alone would map seed 0 to 1)
-    c = run("RRT", 1.0, 1)
+    c = run(pendulum, "RRT", 1.0, 1)
     assert c.extra["ompl_seed"] != a.extra["ompl_seed"]
-    assert c.nodes != a.nodes or not np.array_equal(c.path.durations, a.path.durations)
+    assert c.nodes != a.nodes or c.path_duration != a.path_duration
 
 
 def test_box_obstacle_respected(pendulum):
-    r = run("RRT", 2.0, 0, box=True)
-    assert r.solved and r.status == "exact" and r.extra["resim_valid"]
-    check_path(pendulum, r, 2.0)
-    states = simulate_controls(pendulum, r.path, 0.01)
+    r = run(pendulum, "RRT", 2.0, 0, box=True)
+    assert r.solved and r.status == "exact" and r.extra["valid"]
+    check_path(pendulum, r, 2.0, box=True)
+    states = np.concatenate([t for t in r.tree.trajectories[1:]])
     wrapped = states + pendulum.wrap_shift(states)
-    assert np.all((wrapped[:, 0] >= -1.5 * np.pi) & (wrapped[:, 0] < 0.5 * np.pi))
     inside = np.all((wrapped >= BOX["low"]) & (wrapped <= BOX["high"]), axis=1)
     assert not inside.any()
 
 
 @pytest.mark.parametrize("planner", ["KPIECE1", "EST"])
 def test_other_planners_return_valid_results(pendulum, planner):
-    r = run(planner, 2.0, 0)
-    assert isinstance(r, BaselineResult)
-    assert r.planner == f"ompl-{planner.lower()}"
+    r = run(pendulum, planner, 2.0, 0)
+    assert isinstance(r, Plan) and r.extra["planner"] == f"ompl-{planner}"
     assert r.status in ("exact", "approximate", "timeout")
-    assert r.iterations == 0 and r.nodes >= 1 and r.cpu_s > 0
-    assert r.solved == bool(r.extra["reaches_goal"] and r.extra["resim_valid"])
-    if r.path is not None:
+    assert r.iterations == 0 and r.nodes >= 1 and r.planning_cpu_s > 0
+    if r.edges():
         m = check_path(pendulum, r, 2.0)
-        assert m["reaches_goal"] == r.extra["reaches_goal"]
+        assert r.solved == m["reaches_goal"]
 
 
-def test_fast_obstacle_test_matches_problem_validity(pendulum):
+def test_four_state_system_with_goal_weights():
+    """The cart-pole (4 states, an angle): OMPL plans to a weighted goal (cart position
+    free) under a force box, and the re-execution confirms it."""
+    from rrtcolearn.systems import make
+
+    cartpole = make("cartpole")
+    prob = PlanningProblem.create(cartpole, [0.0, 0.0, 0.0, 0.0], [0.0, 0.5, 0.0, 0.0], 0.3,
+                                  u_max=100.0, goal_weights=[0.0, 1.0, 0.3, 0.3])
+    r = planners.make("ompl-RRT").solve(prob, TerminationCondition(20.0), 3)
+    assert r.solved, r.extra
+    m = replay(prob, r)
+    assert m["reaches_goal"] and m["max_abs_u"] <= 100.0
+    assert r.final_goal_distance == pytest.approx(m["final_goal_distance"])
+
+
+def test_fast_tests_match_the_problem(pendulum):
     obstacles = [BOX, {"type": "halfplane", "normal": [0.3, -1.0], "offset": 2.4}]
-    problem = PlanningProblem.create(pendulum, START, GOAL, TOL, u_max=1.0,
-                                     obstacles=obstacles)
-    free = _obstacle_free(problem)
+    prob = PlanningProblem.create(pendulum, START, GOAL, TOL, u_max=1.0, obstacles=obstacles,
+                                  wrap_goal=True, goal_weights=[1.0, 0.5])
+    free = _obstacle_free(prob)
+    distance = _goal_distance(prob)
     rng = np.random.default_rng(0)
     x = rng.uniform(pendulum.state_low - 1.0, pendulum.state_high + 1.0, size=(4000, 2))
     x = np.concatenate([x, [[-2.0, 0.3], [-1.2, 2.5], [0.5 * np.pi, 0.0], [-1.5 * np.pi, 1.0]]])
-    np.testing.assert_array_equal([free(a, b) for a, b in x], problem.validity(x))
+    np.testing.assert_array_equal([free(list(v)) for v in x], prob.validity(x))
+    np.testing.assert_allclose([distance(list(v)) for v in x], prob.goal_distance(x),
+                               rtol=1e-12, atol=1e-12)
     assert _obstacle_free(PlanningProblem.create(pendulum, START, GOAL, TOL)) is None
 
 
 @pytest.mark.parametrize("kwargs, match", [
     ({"planner": "SST"}, "unknown OMPL planner"),
-    ({"u_max": None}, "control bounds"),
     ({"propagation_step": 0.015}, "multiple of"),
     ({"min_steps": 5, "max_steps": 2}, "min_steps"),
 ])
 def test_bad_arguments(kwargs, match):
-    args = {"planner": "RRT", "u_max": 1.0, **kwargs}
     with pytest.raises(ValueError, match=match):
-        solve_ompl(args.pop("planner"), START, GOAL, TOL, **args)
+        OMPLPlanner(**kwargs)
 
 
-def test_worker_errors_reach_the_caller():
-    with pytest.raises(ProblemError, match="inside an obstacle"):
-        run_ompl_isolated("RRT", START, [-1.5, 1.0], TOL, u_max=1.0, obstacles=[BOX])
+def test_unbounded_inputs_need_a_bound(pendulum):
+    prob = PlanningProblem.create(pendulum, START, GOAL, TOL)
+    assert "input bound" in planners.make("ompl-RRT").supports(prob)
+    with pytest.raises(ValueError, match="input bound"):
+        planners.make("ompl-RRT").solve(prob, TerminationCondition(1.0), 0)
+    assert planners.make("ompl-RRT", u_max=3.0).supports(prob) is None

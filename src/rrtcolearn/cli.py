@@ -499,18 +499,26 @@ def experiment(
     out: Annotated[Path | None, typer.Option("--out", help="experiment directory "
                                              "(default runs/<name>-experiment)")] = None,
     set_: SetOpt = None,
-    quick: Annotated[bool, typer.Option("--quick", help="2 epochs x 30 runs")] = False,
+    quick: Annotated[bool, typer.Option(
+        "--quick", help="a few minutes: 2 epochs x 30 runs (peers 10) for the pendulum, 1 x 3 "
+        "runs for another system")] = False,
     workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
-    dask_local: DaskLocalOpt = None,
+    dask_local: DaskLocalOpt = None, system: SystemOpt = None,
 ) -> None:
-    """The paper's experiment (10 epochs x 300 runs) beside the peers; writes a report."""
+    """RRT-CoLearn beside every peer that supports the problems (the paper's experiment,
+    10 epochs x 300 runs, for the pendulum; another system's standard query); writes a
+    report, runs.csv, OMPL logs and a Planner Arena database."""
     def body():
-        from rrtcolearn.experiment.runner import QUICK, run_experiment
+        from rrtcolearn.experiment.runner import quick_settings, run_experiment
 
         settings = ExecutionSettings.from_options(workers, scheduler, dask_local)
-        overrides = [f"experiment.{k}={v!r}" for k, v in QUICK.items()] if quick else []
-        cfg = _config(config, seed, overrides + list(set_ or []))
-        exp_dir = out if out is not None else Path("runs") / f"{cfg.name}-experiment"
+        cfg = _config(config, seed, set_, system=system)
+        if quick:
+            overrides = [f"experiment.{k}={v!r}"
+                         for k, v in quick_settings(cfg.system.name).items()]
+            cfg = _config(config, seed, overrides + list(set_ or []), system=system)
+        pipeline.build_system(cfg)  # an unknown system is reported before any work
+        exp_dir = out if out is not None else Path("runs") / f"{_run_name(cfg)}-experiment"
         with _progress() as bar:
             task = bar.add_task("offline: generate, clean, fit", total=None)
 
@@ -527,7 +535,7 @@ def experiment(
             figures[f"{name} success / median ms"] = (
                 f"{st['success_rate']:.2f} / {1e3 * (st['time_median'] or 0):.1f}")
         if summary["skipped_planners"]:
-            figures["skipped"] = ", ".join(summary["skipped_planners"])
+            figures["skipped"] = "; ".join(summary["skipped_planners"])
         _print_summary("experiment", figures)
     _guard(body)
 

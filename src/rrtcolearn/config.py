@@ -277,7 +277,9 @@ class ProblemSpec(_Section):
     goal_tolerance: float = Field(0.1, gt=0)
 
 
-def _default_problems() -> list[ProblemSpec]:
+def pendulum_problems() -> list[ProblemSpec]:
+    """The pendulum experiment's five problems (the paper's unbounded swing-up, and torque
+    limits with two tolerances and time weights)."""
     return [
         ProblemSpec(name="unbounded-tol0.1"),
         ProblemSpec(name="u2-tol0.1", u_max=2.0),
@@ -298,11 +300,20 @@ class ExperimentConfig(_Section):
     direct_pairs: int = Field(3000, ge=10, description="collocation pairs per direct dataset")
     planners: list[str] = Field(default_factory=lambda: [
         "rrtcolearn", "random-rrt", "ompl-RRT", "ompl-KPIECE1", "ompl-EST", "direct"])
-    problems: list[ProblemSpec] = Field(default_factory=_default_problems)
+    problems: list[ProblemSpec] | None = Field(
+        None, description="the problems (none: the pendulum's five, pendulum_problems, or for "
+        "another system its standard query as the one problem 'standard')")
+    peer_u_max: float | None = Field(
+        None, gt=0, description="input bound of the random-control peers (random-rrt, "
+        "ompl-*) on problems whose inputs are unbounded; none: they skip such problems")
     time_limit: float = Field(10.0, gt=0)
+    cpu_time_limit: float | None = Field(
+        None, gt=0, description="also stop after this many CPU seconds of the planning "
+        "process: every planner gets the same CPU on a loaded machine")
     max_iterations: int | None = Field(
-        None, ge=1, description="also stop after this many iterations (RRT-CoLearn and the "
-        "random-control RRT): a limit that does not depend on the machine's load")
+        None, ge=1, description="also stop after this many iterations (every planner that counts "
+        "iterations; OMPL's bindings count none): a limit that does not depend on the "
+        "machine's load")
     runs_per_task: int = Field(10, ge=1, description="planning runs per parallel task")
     d_grid: list[float] = Field(default_factory=lambda: [0.01, 0.02, 0.05, 0.1, 0.2])
     d_grid_plans: int = Field(30, ge=1, description="planning runs per d in the grid search")

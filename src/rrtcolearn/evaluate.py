@@ -142,3 +142,36 @@ def sample_path(system: System, plan, dt: float | None = None) -> dict[str, np.n
     keep = np.r_[np.arange(0, len(state) - 1, every), len(state) - 1]
     return {"t": keep * step, "state": state[keep], "input": inputs[keep],
             "costate": costate[keep], "edge": edge[keep]}
+
+
+def replay(problem, plan) -> dict:
+    """Re-integrate a plan's path (any planner's `Plan`) from the problem's start, each edge
+    from where the previous one ended (`edge_trajectory`, not from the stored nodes), and
+    check it against ``problem`` (a `PlanningProblem`): ``path_cost``, ``path_duration``,
+    ``max_abs_u``, ``final_goal_distance`` (`PlanningProblem.goal_distance`) and whether the
+    path ``reaches_goal``, keeps its inputs in the box (``inputs_in_box``: the system's
+    limits and ``u_max``) and its states ``valid`` (finite, in the state constraints, free of
+    obstacles at every step). ``reaches_goal`` needs all three: one check for every planner."""
+    system = problem.system
+    low_u, high_u = system.input_limits()
+    if problem.u_max is not None:
+        low_u, high_u = np.maximum(low_u, -problem.u_max), np.minimum(high_u, problem.u_max)
+    x = np.asarray(problem.start, dtype=np.float64)
+    cost = duration = max_u = 0.0
+    valid = inputs_ok = True
+    for e in plan.edges():
+        t = edge_trajectory(system, {**e, "from": x.tolist()}, plan.time_weight, plan.dt)
+        max_u = max(max_u, float(np.abs(t.inputs).max()))
+        inputs_ok &= bool(np.all((t.inputs >= low_u - 1e-9) & (t.inputs <= high_u + 1e-9)))
+        states = t.states[1:]
+        valid &= bool(np.isfinite(states).all() and problem.within_bounds(states).all())
+        if problem.validity and len(states):
+            valid &= bool(problem.validity(states).all())
+        cost += t.cost
+        duration += (len(t.states) - 1) * plan.dt
+        x = t.states[-1]
+    gap = float(problem.goal_distance(x[None])[0])
+    return {"path_cost": cost, "path_duration": duration, "max_abs_u": max_u,
+            "final_goal_distance": gap, "inputs_in_box": inputs_ok, "valid": valid,
+            "reaches_goal": bool(plan.path_nodes) and valid and inputs_ok
+            and gap <= problem.goal_tolerance + 1e-9}

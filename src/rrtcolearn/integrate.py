@@ -1,9 +1,16 @@
-"""Compiled RK4 integration of the state+costate(+cost) ODEs.
+"""The package's one RK4 family.
 
-``z = (x, lambda, cost)`` of length ``2n+1``; ``rhs(z, w, out)`` is the system's compiled
-right-hand side, writing the state+costate derivative and the running cost (last entry).
-Batched rollouts stop per row (paper Experiments: when the cost exceeds a bound or the state
-leaves a ball around its start), so no row costs more steps than it needs.
+- The compiled kernels of the state+costate(+cost) ODEs (``rollout``, ``rollout_batch``):
+  ``z = (x, lambda, cost)`` of length ``2n+1``; ``rhs(z, w, out)`` is the system's compiled
+  right-hand side, writing the state+costate derivative and the running cost (last entry).
+  Batched rollouts stop per row (paper Experiments: when the cost exceeds a bound or the state
+  leaves a ball around its start), so no row costs more steps than it needs.
+- `propagate` / `propagate_controls`: the plain dynamics ``x' = f(x, u)`` under constant /
+  piecewise-constant inputs (``propagate_jit``); RRT-CoLearn's random-control edges and every
+  peer (random-control RRT, OMPL's planners, the direct method) execute and re-simulate their
+  paths with them.
+- `rk4_step`: the same step in numpy for any vector field, the reference the kernels are
+  checked against and the fallback for a system without compiled kernels.
 
 numba can neither cache a function that receives another compiled function as an argument
 nor one that closes over it, so the kernels are kept as source and compiled into each system
@@ -154,19 +161,56 @@ def rollout(system, z0: np.ndarray, w: float, dt: float, n_steps: int) -> np.nda
                               int(n_steps))
 
 
+def rk4_step(f, x: np.ndarray, dt: float) -> np.ndarray:
+    """One classical RK4 step of ``x' = f(x)`` for numpy states (any shape ``f`` accepts):
+    the reference the compiled kernels are checked against (`rrtcolearn.systems.check`) and
+    the fallback of `propagate` for a system without a compiled ``propagate_jit``."""
+    k1 = f(x)
+    k2 = f(x + 0.5 * dt * k1)
+    k3 = f(x + 0.5 * dt * k2)
+    k4 = f(x + dt * k3)
+    return x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
 def propagate(system, x0: np.ndarray, u: np.ndarray, dt: float, n_steps: int,
               low: np.ndarray | None = None, high: np.ndarray | None = None) -> np.ndarray:
     """RK4 of the plain dynamics from ``x0`` (n,) under the constant input ``u`` (m,) for
     ``n_steps`` steps of ``dt``: states (n_steps+1, n). With ``low``/``high`` (n,) (+-inf
     where free) it stops early, after the first state outside them or not finite (that state
     is the last row). Piecewise-constant controls (random-control edges, peers' paths) are
-    integrated with this one function."""
+    integrated with this one function (`propagate_controls`)."""
     n = len(x0)
     low = np.full(n, -np.inf) if low is None else np.ascontiguousarray(low, dtype=np.float64)
     high = np.full(n, np.inf) if high is None else np.ascontiguousarray(high, dtype=np.float64)
-    return system.propagate_jit(np.ascontiguousarray(x0, dtype=np.float64),
-                                np.ascontiguousarray(u, dtype=np.float64), float(dt),
-                                int(n_steps), low, high)
+    x0 = np.ascontiguousarray(x0, dtype=np.float64)
+    u = np.ascontiguousarray(u, dtype=np.float64)
+    if system.propagate_jit is not None:
+        return system.propagate_jit(x0, u, float(dt), int(n_steps), low, high)
+    traj = np.empty((int(n_steps) + 1, n))
+    traj[0] = x0
+    ub = u[None]
+    for s in range(int(n_steps)):  # a System built by hand, without compiled kernels
+        traj[s + 1] = rk4_step(lambda x: system.dynamics(x, ub), traj[s][None], dt)[0]
+        if not np.all((low <= traj[s + 1]) & (traj[s + 1] <= high)):
+            return traj[: s + 2]
+    return traj
+
+
+def propagate_controls(system, x0: np.ndarray, controls: np.ndarray, steps: np.ndarray,
+                       dt: float, low: np.ndarray | None = None,
+                       high: np.ndarray | None = None) -> np.ndarray:
+    """`propagate` along piecewise-constant controls: ``controls[k]`` (m,) held for
+    ``steps[k]`` RK4 steps of ``dt``, from ``x0`` (n,). Returns the states (1 + sum(steps),
+    n) at every step, or fewer when ``low``/``high`` stop it (the first state outside them
+    is the last row). Every peer's path is executed and re-simulated with this."""
+    controls = np.asarray(controls, dtype=np.float64).reshape(len(steps), -1)
+    parts = [np.asarray(x0, dtype=np.float64)[None]]
+    for u, k in zip(controls, steps, strict=True):
+        traj = propagate(system, parts[-1][-1], u, dt, int(k), low, high)
+        parts.append(traj[1:])
+        if len(traj) < int(k) + 1:
+            break
+    return np.concatenate(parts)
 
 
 def rollout_batch(

@@ -1,5 +1,6 @@
-"""Planners users compare RRT-CoLearn with, run in the same harness on the same problems."""
+"""Planners users compare RRT-CoLearn with (its peers), run on the same problems; each is a
+`rrtcolearn.planners.Planner` (``rrtcolearn.planners.make("random-rrt")``)."""
 
-from rrtcolearn.baselines.base import BaselineResult, ControlPath, path_metrics, simulate_controls
+from rrtcolearn.baselines.base import control_plan, in_goal, input_box
 
-__all__ = ["BaselineResult", "ControlPath", "path_metrics", "simulate_controls"]
+__all__ = ["control_plan", "in_goal", "input_box"]

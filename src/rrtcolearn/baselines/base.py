@@ -1,72 +1,118 @@
-"""Common result type of baseline planners and an independent re-simulation of their paths.
+"""What the peers share: the input box they draw from, their goal test, and their result, a
+`Plan` of control edges (constant inputs held for whole RK4 steps) like RRT-CoLearn's.
 
-Baselines choose inputs directly: their paths are piecewise-constant controls, re-simulated
-here with RK4 on the plain dynamics f(x, u) so every planner's figures come from one check.
+Peers choose inputs directly; their paths are executed with `rrtcolearn.integrate.propagate`
+on the problem's `System.dynamics`, so every planner's plan is re-simulated by one check
+(`rrtcolearn.evaluate.replay`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 
-from rrtcolearn.systems.base import System
+from rrtcolearn.integrate import propagate
+from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.tree import Plan, PlannerData
 
 
-@dataclass
-class ControlPath:
-    """Piecewise-constant inputs from ``start``: ``controls[k]`` (m,) held for ``durations[k]``."""
-
-    start: np.ndarray  # (n,)
-    controls: np.ndarray  # (K, m)
-    durations: np.ndarray  # (K,) seconds, multiples of the propagation step
-
-
-@dataclass
-class BaselineResult:
-    """One planning run of a baseline planner."""
-
-    planner: str
-    solved: bool
-    status: str  # "exact", "approximate" or "timeout"
-    cpu_s: float
-    wall_s: float
-    iterations: int
-    nodes: int
-    path: ControlPath | None
-    extra: dict = field(default_factory=dict)
+def input_box(problem: PlanningProblem, u_max: float | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """(m,) low and high input bounds of a random-control peer: the system's input limits,
+    within the problem's ``u_max`` if it has one; an input still unbounded gets +-``u_max``
+    (the peer's own bound). ValueError if an input stays unbounded."""
+    low, high = problem.system.input_limits()
+    if problem.u_max is not None:
+        low, high = np.maximum(low, -problem.u_max), np.minimum(high, problem.u_max)
+    if u_max is not None:
+        low = np.where(np.isfinite(low), low, -float(u_max))
+        high = np.where(np.isfinite(high), high, float(u_max))
+    if not (np.isfinite(low).all() and np.isfinite(high).all()):
+        raise ValueError(
+            f"system {problem.system.name!r} has unbounded inputs and the problem sets no "
+            "u_max: a random-control planner needs an input bound (give the planner u_max, "
+            "or plan with input limits)")
+    return low, high
 
 
-def simulate_controls(system: System, path: ControlPath, dt: float) -> np.ndarray:
-    """States (S+1, n) at every RK4 step of ``dt`` along the path."""
-    x = np.asarray(path.start, dtype=np.float64)[None, :]
-    out = [x[0].copy()]
-    for u, duration in zip(path.controls, path.durations, strict=True):
-        u = np.asarray(u, dtype=np.float64)[None, :]
-        for _ in range(round(duration / dt)):
-            k1 = system.dynamics(x, u)
-            k2 = system.dynamics(x + 0.5 * dt * k1, u)
-            k3 = system.dynamics(x + 0.5 * dt * k2, u)
-            k4 = system.dynamics(x + dt * k3, u)
-            x = x + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-            out.append(x[0].copy())
-    return np.array(out)
+def input_box_reason(problem: PlanningProblem, u_max: float | None = None) -> str | None:
+    """Why `input_box` has no box for ``problem`` (None: it has one)."""
+    try:
+        input_box(problem, u_max)
+    except ValueError as exc:
+        return str(exc)
+    return None
 
 
-def path_metrics(system: System, path: ControlPath | None, dt: float, time_weight: float,
-                 goal: np.ndarray, goal_tolerance: float) -> dict:
-    """Cost (integral of w + u^2/2), duration, max |u| and end-to-goal distance, re-simulated."""
-    if path is None or len(path.durations) == 0:
-        return {"path_cost": 0.0, "path_duration": 0.0, "max_abs_u": 0.0,
-                "final_goal_distance": None, "reaches_goal": False}
-    states = simulate_controls(system, path, dt)
-    u2 = np.sum(np.asarray(path.controls, dtype=np.float64) ** 2, axis=1)
-    cost = float(np.sum((time_weight + 0.5 * u2) * path.durations))
-    gap = float(np.linalg.norm(states[-1] - goal))
-    return {
-        "path_cost": cost,
-        "path_duration": float(np.sum(path.durations)),
-        "max_abs_u": float(np.abs(path.controls).max()),
-        "final_goal_distance": gap,
-        "reaches_goal": gap <= goal_tolerance + 1e-9,
-    }
+def in_goal(problem: PlanningProblem, states: np.ndarray) -> np.ndarray:
+    """(N,) True for the states (N, n) inside the problem's goal region (as RRT-CoLearn
+    tests it: the squared weighted distance, or the user's goal function)."""
+    if problem.goal_fn is None:
+        gd = problem.goal_residual(states)
+        return np.einsum("ij,ij->i", gd, gd) <= problem.goal_tolerance**2
+    return problem.goal_distance(states) <= problem.goal_tolerance
+
+
+def edge_cost_rate(problem: PlanningProblem, u: np.ndarray, time_weight: float) -> float:
+    """Running cost ``w + u^T R u / 2`` of the constant input ``u`` (m,)."""
+    n = problem.system.n_states
+    return float(problem.system.hamiltonian(problem.start[None], np.zeros((1, n)),
+                                            np.asarray(u, dtype=np.float64)[None],
+                                            time_weight)[0])
+
+
+def control_plan(problem: PlanningProblem, controls: np.ndarray, steps: np.ndarray, *,
+                 dt: float, time_weight: float, cpu_s: float, wall_s: float, iterations: int,
+                 graph_states: int, extra: dict) -> Plan:
+    """The `Plan` of a peer's path: ``controls[k]`` (m,) held for ``steps[k]`` RK4 steps of
+    ``dt`` from the start, executed here edge after edge (`propagate`). The tree holds the
+    path only (``graph_states`` is the size of the peer's graph). The status is "exact" only
+    when the executed path stays valid (state constraints, obstacles, finite) and ends in the
+    goal region; the peer's own claim is not taken on trust."""
+    sys = problem.system
+    controls = np.asarray(controls, dtype=np.float64).reshape(len(steps), sys.n_inputs)
+    tree = PlannerData(problem.start, sys.n_params, capacity=max(2, len(steps) + 1),
+                       n_inputs=sys.n_inputs)
+    low, high = problem.constraint_box
+    valid = True
+    for u, k in zip(controls, steps, strict=True):
+        x = tree.states[tree.n_nodes - 1]
+        traj = propagate(sys, x, u, dt, int(k), low, high)
+        ok = len(traj) == int(k) + 1 and bool(np.isfinite(traj[-1]).all()) and \
+            bool(np.all((traj[-1] >= low) & (traj[-1] <= high)))
+        if ok and problem.validity:
+            ok = bool(problem.validity(traj[1:]).all())
+        valid &= ok
+        tree.add(traj[-1], tree.n_nodes - 1, np.full(sys.n_states, np.nan),
+                 np.full(sys.n_params, np.nan), int(k) * dt,
+                 int(k) * dt * edge_cost_rate(problem, u, time_weight), traj,
+                 float(np.abs(u).max()), control=u)
+        if not ok:
+            break
+    end = tree.states[tree.n_nodes - 1]
+    reached = bool(in_goal(problem, end[None])[0])
+    status = "exact" if valid and reached else ("approximate" if tree.n_nodes > 1
+                                                else "timeout")
+    return peer_plan(problem, tree, list(range(tree.n_nodes)), status, dt=dt,
+                     time_weight=time_weight, cpu_s=cpu_s, wall_s=wall_s,
+                     iterations=iterations, graph_states=graph_states,
+                     extra={**extra, "valid": valid})
+
+
+def peer_plan(problem: PlanningProblem, tree: PlannerData, path_nodes: list[int], status: str,
+              *, dt: float, time_weight: float, cpu_s: float, wall_s: float, iterations: int,
+              graph_states: int | None, extra: dict) -> Plan:
+    """A peer's `Plan` with the problem's fields filled in as RRT-CoLearn fills them."""
+    sys = problem.system
+    region = problem.goal_fn is not None or problem.goal_weights is not None
+    input_low, input_high = sys.input_limits() if sys.input_limited else (None, None)
+    end = tree.states[path_nodes[-1]] if path_nodes else problem.start
+    return Plan(
+        system=sys.name, start=problem.start, goal=problem.goal,
+        goal_tolerance=problem.goal_tolerance, time_weight=float(time_weight), dt=float(dt),
+        status=status, planning_time_s=float(wall_s), planning_cpu_s=float(cpu_s),
+        iterations=int(iterations), tree=tree, path_nodes=path_nodes, u_max=problem.u_max,
+        input_low=input_low, input_high=input_high,
+        obstacles=[o.to_dict() for o in problem.validity.obstacles],
+        goal_angles=problem.goal_angles,
+        end_goal_distance=float(problem.goal_distance(end[None])[0]) if region else None,
+        graph_states=graph_states, extra=extra)

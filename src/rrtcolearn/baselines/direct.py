@@ -35,16 +35,14 @@ leave-one-solve-out distances (1.27 there, which accepts 72 % of held-out cheap 
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 
-import numba
 import numpy as np
 
-from rrtcolearn.baselines.base import BaselineResult, ControlPath, path_metrics
+from rrtcolearn.integrate import propagate_controls
 from rrtcolearn.learn.models import CostToGoRegressor, ValidityClassifier
 from rrtcolearn.learn.neighbours import NeighbourIndex
 from rrtcolearn.systems.pendulum import make_pendulum
@@ -227,22 +225,17 @@ def get_solver(n_intervals: int = N_INTERVALS) -> CollocationSolver:
 # execution of a collocation solution as piecewise-constant inputs
 
 
-@numba.njit(cache=True)
-def _rk4_pendulum(x0, u, dt):  # pragma: no cover - compiled
-    """States (K, 2) after each RK4 step of ``dt`` under the constant inputs u (K,)."""
-    out = np.empty((u.shape[0], 2))
-    th, om = x0[0], x0[1]
-    for k in range(u.shape[0]):
-        uk = u[k]
-        a1, b1 = om, math.sin(th) + uk
-        a2, b2 = om + 0.5 * dt * b1, math.sin(th + 0.5 * dt * a1) + uk
-        a3, b3 = om + 0.5 * dt * b2, math.sin(th + 0.5 * dt * a2) + uk
-        a4, b4 = om + dt * b3, math.sin(th + dt * a3) + uk
-        th = th + dt / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-        om = om + dt / 6.0 * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
-        out[k, 0] = th
-        out[k, 1] = om
-    return out
+@lru_cache(maxsize=1)
+def _pendulum():
+    """The pendulum, built once per process (its dynamics execute every edge)."""
+    return make_pendulum()
+
+
+def execute_controls(x0: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+    """States (K, 2) after each RK4 step of ``dt`` under the inputs u (K,), each held for one
+    step (`rrtcolearn.integrate.propagate_controls` on the pendulum's own dynamics)."""
+    return propagate_controls(_pendulum(), x0, np.asarray(u)[:, None],
+                              np.ones(len(u), dtype=np.int64), dt)[1:]
 
 
 def executed_controls(sol: CollocationSolution, dt: float = 0.01,
@@ -257,7 +250,7 @@ def execute(sol: CollocationSolution, dt: float = 0.01, u_max: float | None = No
             ) -> tuple[np.ndarray, np.ndarray]:
     """Executed inputs (K,) and the RK4 states (K, 2) after each step, from ``sol.x0``."""
     u = executed_controls(sol, dt, u_max)
-    return u, _rk4_pendulum(sol.x0, u, dt)
+    return u, execute_controls(sol.x0, u, dt)
 
 
 def polish(solver: CollocationSolver, sol: CollocationSolution, *, time_weight: float,
@@ -487,39 +480,109 @@ def fit_direct_model(dataset: dict, n_neighbors: int = 3,
 # online: the RRT with a collocation local planner
 
 
-def solve_direct_rrt(model: DirectModel, start, goal, goal_tolerance: float = 0.1, *,
-                     seed: int = 0, time_limit: float = 10.0, max_iterations: int | None = None,
-                     u_max: float | None = None, obstacles=(), time_weight: float = 1.0,
-                     goal_bias: float = 0.2, max_step: float = MAX_OFFSET,
-                     max_edge_cost: float | None = None, polish_edges: str = "goal",
-                     dt: float = 0.01, cpu_time_limit: float | None = None) -> BaselineResult:
-    """Plan the pendulum from ``start`` to the ``goal_tolerance`` ball around ``goal``.
+def pendulum_reason(system) -> str | None:
+    """None if ``system`` has the pendulum's dynamics f = (omega, sin(theta) + u), which the
+    collocation problem is written for; else why the direct method cannot plan on it."""
+    if system.n_states != 2 or system.n_inputs != 1:
+        return (f"the direct method's collocation is written for the pendulum; system "
+                f"{system.name!r} has {system.n_states} states and {system.n_inputs} inputs")
+    x = np.array([[-np.pi, 0.0], [0.3, -1.2], [2.0, 0.7]])
+    u = np.array([[0.0], [1.5], [-0.4]])
+    want = np.stack([x[:, 1], np.sin(x[:, 0]) + u[:, 0]], axis=1)
+    if not np.allclose(system.dynamics(x, u), want, rtol=1e-12, atol=1e-12):
+        return (f"the direct method's collocation is written for the pendulum's dynamics "
+                f"(omega, sin(theta) + u); system {system.name!r} has others")
+    return None
 
-    Each iteration samples a target (the goal with probability ``goal_bias``, else uniform in
-    the state box), expands the node with the least J among those V accepts (queries shifted
-    by whole turns like RRT-CoLearn's), truncates the target to ``max_step`` from it and
-    solves the collocation problem there. A failed solve, a cost above ``max_edge_cost``
-    (default: the dataset's bound) or a re-simulated edge that leaves the omega bounds or hits
-    an obstacle wastes the iteration. The new node is the re-simulated end state; an edge is
-    cut at its first state inside the goal region. ``polish_edges``: "goal" (edges aimed at
-    the goal), "all" or "none" are re-solved with T a multiple of dt. ``time_limit`` is wall
-    time, as for the other baselines; ``cpu_time_limit`` (optional) bounds the process time,
-    which is what ``cpu_s`` reports, for fair limits on a shared machine.
+
+def symmetric_bound(problem) -> float | None:
+    """The single torque bound |u| <= u_max of ``problem`` (its u_max, within the system's
+    limits), None if unbounded; ValueError for limits the collocation cannot take."""
+    bound = problem.u_max
+    if problem.system.input_limited:
+        low, high = problem.system.input_limits()
+        if not (np.isfinite(high[0]) and low[0] == -high[0]):
+            raise ValueError("the direct method takes a symmetric torque limit |u| <= u_max "
+                             f"only, got [{low[0]:g}, {high[0]:g}]")
+        bound = float(high[0]) if bound is None else min(bound, float(high[0]))
+    return bound
+
+
+class DirectPlanner:
+    """The direct-method learning RRT as a `rrtcolearn.planners.Planner`, with a fitted
+    ``model`` (`fit_direct_model`); the other arguments are those of `solve_direct_rrt`.
+    Pendulum problems only (`pendulum_reason`), and it needs casadi."""
+
+    name = "direct"
+
+    def __init__(self, model: DirectModel | None = None, *, time_weight: float = 1.0,
+                 goal_bias: float = 0.2, max_step: float = MAX_OFFSET,
+                 max_edge_cost: float | None = None, polish_edges: str = "goal",
+                 dt: float = 0.01):
+        if polish_edges not in ("goal", "all", "none"):
+            raise ValueError(f"polish_edges must be 'goal', 'all' or 'none', got "
+                             f"{polish_edges!r}")
+        self.model = model
+        self.time_weight = time_weight
+        self.goal_bias = goal_bias
+        self.max_step = max_step
+        self.max_edge_cost = max_edge_cost
+        self.polish_edges = polish_edges
+        self.dt = dt
+
+    def supports(self, problem) -> str | None:
+        """None, or why the planner cannot run on ``problem``."""
+        if not casadi_available():
+            return "the casadi package is not installed (extra 'direct')"
+        reason = pendulum_reason(problem.system)
+        if reason is None:
+            try:
+                symmetric_bound(problem)
+            except ValueError as exc:
+                reason = str(exc)
+        return reason
+
+    def solve(self, problem, termination, seed: int = 0):
+        """Plan ``problem`` (`solve_direct_rrt`)."""
+        if self.model is None:
+            raise ValueError("the direct planner needs a fitted model (fit_direct_model)")
+        return solve_direct_rrt(self.model, problem, termination, seed,
+                                time_weight=self.time_weight, goal_bias=self.goal_bias,
+                                max_step=self.max_step, max_edge_cost=self.max_edge_cost,
+                                polish_edges=self.polish_edges, dt=self.dt)
+
+
+def solve_direct_rrt(model: DirectModel, problem, termination, seed: int = 0, *,
+                     time_weight: float = 1.0, goal_bias: float = 0.2,
+                     max_step: float = MAX_OFFSET, max_edge_cost: float | None = None,
+                     polish_edges: str = "goal", dt: float = 0.01):
+    """Plan the pendulum ``problem`` (a `PlanningProblem`) until its goal region is reached or
+    ``termination`` (a `TerminationCondition`) says stop; returns a `Plan`.
+
+    Each iteration samples a target (a goal state with probability ``goal_bias``, else
+    uniform in the state box), expands the node with the least J among those V accepts
+    (queries shifted by whole turns like RRT-CoLearn's), truncates the target to ``max_step``
+    from it and solves the collocation problem there. A failed solve, a cost above
+    ``max_edge_cost`` (default: the dataset's bound) or a re-simulated edge that leaves the
+    state constraints or hits an obstacle wastes the iteration. The new node is the
+    re-simulated end state; an edge is cut at its first state inside the goal region.
+    ``polish_edges``: "goal" (edges aimed at the goal), "all" or "none" are re-solved with T
+    a multiple of dt. The plan's tree holds the path, one control edge per step of ``dt``
+    (``graph_states``: the direct tree's nodes).
     """
-    from rrtcolearn.planning.problem import PlanningProblem
-    from rrtcolearn.planning.termination import TerminationCondition
+    from rrtcolearn.baselines.base import control_plan, in_goal
 
     if polish_edges not in ("goal", "all", "none"):
         raise ValueError(f"polish_edges must be 'goal', 'all' or 'none', got {polish_edges!r}")
-    sys = make_pendulum()
-    prob = PlanningProblem.create(sys, start, goal, goal_tolerance, u_max=u_max,
-                                  obstacles=list(obstacles))
-    u_max = prob.u_max
+    reason = pendulum_reason(problem.system)
+    if reason is not None:
+        raise ValueError(reason)
+    sys, prob = problem.system, problem
+    u_max = symmetric_bound(problem)
     max_edge_cost = model.max_cost if max_edge_cost is None else float(max_edge_cost)
     t_max = default_t_max(time_weight, max_edge_cost)
     solver = get_solver(model.n_intervals)
     rng = np.random.default_rng(seed)
-    tol2 = prob.goal_tolerance**2
     check = bool(prob.validity)
 
     states = np.empty((256, 2))
@@ -530,18 +593,18 @@ def solve_direct_rrt(model: DirectModel, start, goal, goal_tolerance: float = 0.
     edge_u: list[np.ndarray] = [np.zeros(0)]
     edge_info: list[dict] = [{}]
     count = 1
-    goal_node = 0 if prob.goal_distance(prob.start)[0] <= prob.goal_tolerance else -1
+    goal_node = 0 if in_goal(prob, prob.start[None])[0] else -1
     counters = {"no_valid_node": 0, "solve_failed": 0, "too_costly": 0, "out_of_bounds": 0,
                 "collision": 0, "polished": 0, "solves": 0}
     iterations = 0
     solve_cpu = 0.0
-    stop = TerminationCondition(time_limit, max_iterations, cpu_time_limit)
-    cpu0, wall0 = time.process_time(), time.perf_counter()
-    stop.start()
-    while goal_node < 0 and not stop(iterations):
+    cpu0 = time.process_time()
+    termination.start()
+    while goal_node < 0 and not termination(iterations):
         iterations += 1
         to_goal = rng.random() < goal_bias
-        target = prob.goal if to_goal else rng.uniform(sys.state_low, sys.state_high)
+        target = prob.sample_goal(rng) if to_goal else rng.uniform(sys.state_low,
+                                                                   sys.state_high)
         sh = shifts[:count]
         query = np.concatenate([states[:count] + sh, target + sh], axis=1)
         rows, cost = model.query_valid(query)
@@ -577,8 +640,7 @@ def solve_direct_rrt(model: DirectModel, start, goal, goal_tolerance: float = 0.
         if check and not prob.validity(path).all():
             counters["collision"] += 1
             continue
-        gd = path - prob.goal
-        hit = np.flatnonzero(np.einsum("ij,ij->i", gd, gd) <= tol2)
+        hit = np.flatnonzero(in_goal(prob, path))
         end = int(hit[0]) + 1 if hit.size else len(u)
         if count == len(states):
             states = np.concatenate([states, np.empty_like(states)])
@@ -593,41 +655,35 @@ def solve_direct_rrt(model: DirectModel, start, goal, goal_tolerance: float = 0.
         if hit.size:
             goal_node = count
         count += 1
-    cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+    cpu, wall = time.process_time() - cpu0, termination.elapsed()
 
     if goal_node >= 0:
         last = goal_node
     else:
-        gd = states[:count] - prob.goal
-        last = int(np.argmin(np.einsum("ij,ij->i", gd, gd)))
+        last = int(np.argmin(prob.goal_distance(states[:count])))
     chain = []
     node = last
     while node > 0:
         chain.append(node)
         node = parents[node]
     chain.reverse()
-    controls = (np.concatenate([edge_u[i] for i in chain]) if chain else np.zeros(0))
-    path = ControlPath(prob.start.copy(), controls.reshape(-1, 1),
-                       np.full(len(controls), dt))
-    metrics = path_metrics(sys, path, dt, time_weight, prob.goal, prob.goal_tolerance)
-    solved = goal_node == 0 or bool(metrics["reaches_goal"])
-    status = "exact" if solved else ("approximate" if last != 0 else "timeout")
+    controls = np.concatenate([edge_u[i] for i in chain]) if chain else np.zeros(0)
     gaps = [edge_info[i]["gap"] for i in range(1, count)]
     final = edge_info[chain[-1]] if chain else {}
     extra = {
-        "goal_bias": goal_bias, "max_step": max_step, "max_edge_cost": max_edge_cost,
-        "u_max": u_max, "time_weight": time_weight, "polish_edges": polish_edges,
-        "validity_threshold": model.validity.threshold, "data_points": model.n_points,
-        "model_time_weight": model.time_weight, "model_u_max": model.u_max,
-        "solve_cpu_s": solve_cpu, "edges_in_path": len(chain),
+        "planner": "direct", "goal_bias": goal_bias, "max_step": max_step,
+        "max_edge_cost": max_edge_cost, "collocation_u_max": u_max,
+        "polish_edges": polish_edges, "validity_threshold": model.validity.threshold,
+        "data_points": model.n_points, "model_time_weight": model.time_weight,
+        "model_u_max": model.u_max, "solve_cpu_s": solve_cpu, "edges_in_path": len(chain),
         "claimed_end": None if not chain else final["claimed_end"].tolist(),
         "resim_end_of_last_edge": None if not chain else final["resim_end"].tolist(),
         "resim_gap": final.get("gap"),
         "edge_gap_median": float(np.median(gaps)) if gaps else None,
         "edge_gap_max": float(np.max(gaps)) if gaps else None,
         "path_gaps": [edge_info[i]["gap"] for i in chain],
-        "final_goal_distance": metrics["final_goal_distance"],
         **counters,
     }
-    return BaselineResult("direct", solved, status, cpu, wall, iterations, count,
-                          path if chain else None, extra)
+    return control_plan(prob, controls.reshape(-1, 1), np.ones(len(controls), dtype=np.int64),
+                        dt=dt, time_weight=time_weight, cpu_s=cpu, wall_s=wall,
+                        iterations=iterations, graph_states=count, extra=extra)

@@ -13,18 +13,27 @@ from rrtcolearn.data.clean import clean_data
 from rrtcolearn.data.generate import generate_data
 from rrtcolearn.data.store import atomic_write_text, load_dataset, write_json
 from rrtcolearn.evaluate import held_out_errors
-from rrtcolearn.experiment.ompl_format import LogExperiment, write_database, write_log
-from rrtcolearn.experiment.runner import (
-    GOAL,
+from rrtcolearn.experiment.layout import (
     ROW_FIELDS,
-    START,
     dataset_name,
     epoch_config,
+    experiment_problems,
+    planning_problem,
+    problem_system,
     write_csv,
 )
+from rrtcolearn.experiment.ompl_format import LogExperiment, write_database, write_log
+from rrtcolearn.planners import RRTCoLearnPlanner
+from rrtcolearn.planning.termination import TerminationCondition
 
 PAPER = {"plan_time_s_median": 2.36, "nodes_median": 84, "nodes_std": 180,
          "steer_mse_median": 0.11, "offline_s_per_epoch": 25 * 60}
+
+
+def _limit(config: Config) -> TerminationCondition:
+    """The runs' wall and CPU time limits."""
+    e = config.experiment
+    return TerminationCondition(e.time_limit, e.max_iterations, e.cpu_time_limit)
 
 
 def _stats(rows: list[dict]) -> dict:
@@ -52,7 +61,7 @@ def _stats(rows: list[dict]) -> dict:
 def d_grid_search(exp_dir: Path, config: Config) -> list[dict]:
     """Fig. 4's message on real data: clean epoch 0's data with each d, fit, and measure the
     held-out cost and steering errors (paper Section 4: the grid search that picked d)."""
-    pr = config.experiment.problems[0]
+    pr = experiment_problems(config)[0]
     cfg = epoch_config(config, pr, 0)
     run_dir = exp_dir / "epoch-00" / dataset_name(pr)
     raw, _ = load_dataset(run_dir / pipeline.DATASET_FILE)
@@ -68,9 +77,10 @@ def d_grid_search(exp_dir: Path, config: Config) -> list[dict]:
         # beyond the paper: the planner's own figures, cheap enough to measure here
         model = pipeline.FittedModel(system, cfg, functions, float(cleaned.duration.max()),
                                      cfg.generate.max_state_distance)
-        plans = [pipeline.plan(model, START, GOAL, pr.goal_tolerance, seed, u_max=pr.u_max,
-                               obstacles=[], time_limit=config.experiment.time_limit)
-                 for seed in range(config.experiment.d_grid_plans)]
+        problem = planning_problem(config, pr, system)
+        plans = [RRTCoLearnPlanner(model).solve(
+            problem, _limit(config), seed)
+            for seed in range(config.experiment.d_grid_plans)]
         rows.append({"d": d, "kept_points": len(cleaned),
                      "cost_rel_error_median": float(np.median(err.cost_rel_error)),
                      "param_error_median": float(np.median(err.param_error)),
@@ -99,16 +109,16 @@ def _figures(exp_dir: Path, config: Config, rows: list[dict], grid: list[dict]) 
     from rrtcolearn.plotting import plot_tree, save_figure
 
     files = {}
-    main = config.experiment.problems[0]
+    main = experiment_problems(config)[0]
     ours = [r for r in rows if r["planner"] == "rrtcolearn" and r["problem"] == main.name]
     if ours:
         # the tree of a typical run: epoch 0's run with the median number of nodes
         epoch0 = sorted((r for r in ours if r["epoch"] == 0), key=lambda r: r["nodes"])
         typical = epoch0[len(epoch0) // 2]
         model = pipeline.load_model(exp_dir / "epoch-00" / dataset_name(main))
-        plan = pipeline.plan(model, START, GOAL, main.goal_tolerance, typical["seed"],
-                             time_limit=config.experiment.time_limit, u_max=main.u_max,
-                             obstacles=[])
+        plan = RRTCoLearnPlanner(model).solve(
+            planning_problem(config, main, model.system),
+            _limit(config), typical["seed"])
         fig, ax = plt.subplots(figsize=(6.4, 4.8))
         plot_tree(ax, plan)
         save_figure(fig, exp_dir / "tree.png")
@@ -160,15 +170,19 @@ def write_outputs(exp_dir: Path, config: Config, rows: list[dict], offline: list
                   "cpu_s_per_solve"]
     write_csv(exp_dir / "offline.csv", offline, off_fields)
     experiments = []
-    for pr in config.experiment.problems:
+    system = problem_system(config, experiment_problems(config)[0]).name
+    label = "".join(c if c.isalnum() or c in "._-" else "-" for c in system)
+    for pr in experiment_problems(config):
         planners: dict[str, list[dict]] = {}
         for r in rows:
             if r["problem"] == pr.name:
                 planners.setdefault(r["planner"], []).append(r)
-        setup = (f"pendulum swing-up from {START} to {GOAL}, goal tolerance "
-                 f"{pr.goal_tolerance}, u_max {pr.u_max}, time weight {pr.time_weight}")
+        problem = planning_problem(config, pr)
+        setup = (f"{system} from {problem.start.tolist()} to {problem.goal.tolist()}, goal "
+                 f"tolerance {pr.goal_tolerance}, u_max {pr.u_max}, time weight "
+                 f"{pr.time_weight}")
         experiments.append(LogExperiment(
-            name=f"pendulum-{pr.name}", time_limit=config.experiment.time_limit,
+            name=f"{label}-{pr.name}", time_limit=config.experiment.time_limit,
             total_time=float(sum(r.get("wall_s") or 0.0 for rs in planners.values()
                                  for r in rs)),
             seed=config.seed, setup=setup, planners=planners,
@@ -193,16 +207,17 @@ def write_outputs(exp_dir: Path, config: Config, rows: list[dict], offline: list
 
 def _summary(config: Config, rows, offline, grid, skipped) -> dict:
     table = {}
-    for pr in config.experiment.problems:
+    problems = experiment_problems(config)
+    for pr in problems:
         for planner in config.experiment.planners:
             sel = [r for r in rows if r["problem"] == pr.name and r["planner"] == planner]
             if sel:
                 table.setdefault(pr.name, {})[planner] = _stats(sel)
     indirect = [o for o in offline if o["method"] == "indirect"]
-    main = config.experiment.problems[0].name
+    main = problems[0].name
     per_epoch = {}
     for o in indirect:
-        if o["dataset"] == dataset_name(config.experiment.problems[0]):
+        if o["dataset"] == dataset_name(problems[0]):
             per_epoch[o["epoch"]] = o["offline_cpu_s"]
     return {
         "epochs": config.experiment.epochs,
@@ -214,6 +229,7 @@ def _summary(config: Config, rows, offline, grid, skipped) -> dict:
         "planners": table,
         "d_grid": grid,
         "skipped_planners": skipped,
+        "system": problem_system(config, problems[0]).name,
     }
 
 
@@ -221,36 +237,18 @@ def _report(config: Config, summary: dict, figures: dict) -> str:
     main = summary["main_problem"]
     ours = summary["planners"].get(main, {}).get("rrtcolearn", {})
     lines = ["# RRT-CoLearn experiment report", "",
-             f"{summary['epochs']} epochs x {summary['runs_per_epoch']} runs per epoch; "
+             f"System {summary['system']}: {summary['epochs']} epochs x "
+             f"{summary['runs_per_epoch']} runs per epoch; "
              "each epoch has its own freshly generated and cleaned datasets. Times are CPU "
-             "seconds of the planning process (process or thread CPU time), not wall time.", "",
-             "## Against the paper (pendulum swing-up, unbounded torque, tolerance "
-             f"{config.experiment.problems[0].goal_tolerance})", "",
-             "| figure | paper | measured | ratio paper / measured |",
-             "| --- | ---: | ---: | ---: |"]
-
-    def ratio(paper, ours_v):
-        return f"{paper / ours_v:.3g}x" if ours_v else "-"
-
-    t = ours.get("time_median")
-    lines.append(f"| median planning time | 2.36 s | {_fmt(t, 1e3)} ms | "
-                 f"{ratio(PAPER['plan_time_s_median'], t)} |")
-    lines.append(f"| median nodes | 84 | {_fmt(ours.get('nodes_median'))} | "
-                 f"{ratio(84, ours.get('nodes_median'))} |")
-    lines.append(f"| std of nodes | 180 | {_fmt(ours.get('nodes_std'))} | "
-                 f"{ratio(180, ours.get('nodes_std'))} |")
+             "seconds of the planning process (process or thread CPU time), not wall time. "
+             "Every plan is re-simulated from its recorded controls or costates and checked "
+             "against the problem (rrtcolearn.evaluate.replay); only such plans count as "
+             "solved.", ""]
     grid = summary["d_grid"]
     chosen = next((g for g in grid if g["chosen"]), None)
-    at_paper_d = next((g for g in grid if abs(g["d"] - config.clean.d) < 1e-12), None)
-    mse = at_paper_d["steer_mse_median"] if at_paper_d else None
-    lines.append(f"| median steering MSE (d = {config.clean.d:g}) | 0.11 | {_fmt(mse)} | "
-                 f"{ratio(0.11, mse)} |")
-    off = summary["offline_cpu_s_per_epoch_median"]
-    lines.append(f"| offline time per epoch | about 25 min | {_fmt(off)} s | "
-                 f"{ratio(PAPER['offline_s_per_epoch'], off)} |")
-    lines += ["", f"Success rate: {_fmt(ours.get('success_rate'))}. The paper's hardware was a "
-              "2012 laptop CPU; ratios mix algorithmic and hardware differences.", ""]
-    for pr in config.experiment.problems:
+    if summary["system"] == "pendulum":
+        lines += _against_paper(config, summary, ours, grid)
+    for pr in experiment_problems(config):
         planners = summary["planners"].get(pr.name, {})
         if not planners:
             continue
@@ -320,3 +318,30 @@ def _report(config: Config, summary: dict, figures: dict) -> str:
     return "\n".join(lines)
 
 
+def _against_paper(config: Config, summary: dict, ours: dict, grid: list[dict]) -> list[str]:
+    """The paper's pendulum figures beside ours."""
+    lines = ["## Against the paper (pendulum swing-up, unbounded torque, tolerance "
+             f"{experiment_problems(config)[0].goal_tolerance})", "",
+             "| figure | paper | measured | ratio paper / measured |",
+             "| --- | ---: | ---: | ---: |"]
+
+    def ratio(paper, ours_v):
+        return f"{paper / ours_v:.3g}x" if ours_v else "-"
+
+    t = ours.get("time_median")
+    lines.append(f"| median planning time | 2.36 s | {_fmt(t, 1e3)} ms | "
+                 f"{ratio(PAPER['plan_time_s_median'], t)} |")
+    lines.append(f"| median nodes | 84 | {_fmt(ours.get('nodes_median'))} | "
+                 f"{ratio(84, ours.get('nodes_median'))} |")
+    lines.append(f"| std of nodes | 180 | {_fmt(ours.get('nodes_std'))} | "
+                 f"{ratio(180, ours.get('nodes_std'))} |")
+    at_paper_d = next((g for g in grid if abs(g["d"] - config.clean.d) < 1e-12), None)
+    mse = at_paper_d["steer_mse_median"] if at_paper_d else None
+    lines.append(f"| median steering MSE (d = {config.clean.d:g}) | 0.11 | {_fmt(mse)} | "
+                 f"{ratio(0.11, mse)} |")
+    off = summary["offline_cpu_s_per_epoch_median"]
+    lines.append(f"| offline time per epoch | about 25 min | {_fmt(off)} s | "
+                 f"{ratio(PAPER['offline_s_per_epoch'], off)} |")
+    lines += ["", f"Success rate: {_fmt(ours.get('success_rate'))}. The paper's hardware was a "
+              "2012 laptop CPU; ratios mix algorithmic and hardware differences.", ""]
+    return lines

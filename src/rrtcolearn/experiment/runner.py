@@ -14,51 +14,37 @@ Layout of the experiment directory::
 
 from __future__ import annotations
 
-import csv
-import io
 import json
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
-from rrtcolearn import pipeline
-from rrtcolearn.baselines.base import path_metrics
+from rrtcolearn import pipeline, planners
 from rrtcolearn.config import Config, ProblemSpec
-from rrtcolearn.data.store import atomic_write_text
+from rrtcolearn.evaluate import replay
+from rrtcolearn.experiment.layout import (
+    dataset_name,
+    epoch_config,
+    experiment_problems,
+    planning_problem,
+    run_seed,
+)
+from rrtcolearn.experiment.report import write_outputs
 from rrtcolearn.parallel import ExecutionSettings, map_tasks
-from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.termination import TerminationCondition
 
-ROW_FIELDS = ["epoch", "seed", "problem", "planner", "solved", "status", "time", "wall_s",
-              "iterations", "nodes", "path_cost", "path_duration", "max_abs_u",
-              "final_goal_distance", "u_max", "time_weight", "goal_tolerance"]
-START = [-math.pi, 0.0]
-GOAL = [0.0, 0.0]
-QUICK = {"epochs": 2, "runs_per_epoch": 30, "direct_runs_per_epoch": 3, "direct_pairs": 400,
-         "d_grid": [0.02, 0.05, 0.1], "d_grid_plans": 10}
-
-
-def dataset_name(problem: ProblemSpec) -> str:
-    """Problems with the same torque limit and time weight share a dataset."""
-    u = "none" if problem.u_max is None else f"{problem.u_max:g}"
-    return f"umax-{u}_w-{problem.time_weight:g}"
+# the peers' failed runs take the whole limit: 10 runs each keep the pendulum's --quick short
+QUICK = {"epochs": 2, "runs_per_epoch": 30, "peer_runs_per_epoch": 10,
+         "direct_runs_per_epoch": 3, "direct_pairs": 400, "d_grid": [0.02, 0.05, 0.1],
+         "d_grid_plans": 10}
+# another system's offline phase alone takes minutes (cart-pole, acrobot: ~3 min CPU)
+QUICK_OTHER = {"epochs": 1, "runs_per_epoch": 3, "runs_per_task": 1, "d_grid": [],
+               "time_limit": 120.0, "cpu_time_limit": 30.0}
 
 
-def epoch_seed(seed: int, epoch: int) -> int:
-    """Seed of an epoch's dataset, independent of every other epoch's."""
-    return int(np.random.SeedSequence(seed, spawn_key=(100, epoch)).generate_state(1)[0])
-
-
-def run_seed(epoch: int, run: int) -> int:
-    return 100_000 * epoch + run
-
-
-def epoch_config(config: Config, problem: ProblemSpec, epoch: int) -> Config:
-    system = config.system.model_copy(update={"u_max": problem.u_max,
-                                              "time_weight": problem.time_weight})
-    return config.model_copy(update={"system": system, "seed": epoch_seed(config.seed, epoch)})
+def quick_settings(system: str) -> dict:
+    """The ``--quick`` experiment settings for ``system`` (a few minutes each)."""
+    return QUICK if system == "pendulum" else QUICK_OTHER
 
 
 @dataclass(frozen=True)
@@ -76,86 +62,58 @@ class RunTask:
 _MODELS: dict[str, pipeline.FittedModel] = {}
 
 
-def _model(run_dir: Path) -> pipeline.FittedModel:
-    key = str(run_dir)
+def _model(task: RunTask) -> pipeline.FittedModel:
+    key = str(Path(task.exp_dir) / f"epoch-{task.epoch:02d}" / dataset_name(task.problem))
     if key not in _MODELS:
         if len(_MODELS) > 4:  # bounded: a worker holds at most a few epochs' models
             _MODELS.pop(next(iter(_MODELS)))
-        _MODELS[key] = pipeline.load_model(run_dir)
+        _MODELS[key] = pipeline.load_model(key)
     return _MODELS[key]
-
-
-def _rrtcolearn_row(task: RunTask, seed: int) -> dict:
-    pr = task.problem
-    model = _model(Path(task.exp_dir) / f"epoch-{task.epoch:02d}" / dataset_name(pr))
-    plan = pipeline.plan(model, START, GOAL, pr.goal_tolerance, seed,
-                         time_limit=task.config.experiment.time_limit, u_max=pr.u_max,
-                         max_iterations=task.config.experiment.max_iterations, obstacles=[])
-    check = resimulate_plan(model, plan)
-    return {"solved": plan.solved and check["reaches_goal"], "status": plan.status,
-            "time": plan.planning_cpu_s, "wall_s": plan.planning_time_s,
-            "iterations": plan.iterations, "nodes": plan.nodes, **check}
-
-
-def resimulate_plan(model: pipeline.FittedModel, plan) -> dict:
-    """Re-integrate the path edge by edge from the start (not from the stored edge ends)."""
-    from rrtcolearn.evaluate import edge_trajectory
-
-    x = plan.start.copy()
-    cost = duration = max_u = 0.0
-    for e in plan.edges():
-        t = edge_trajectory(model.system, {**e, "from": x}, plan.time_weight, plan.dt)
-        max_u = max(max_u, float(np.abs(t.inputs).max()))
-        cost += t.cost
-        duration += (len(t.states) - 1) * plan.dt
-        x = t.states[-1]
-    gap = float(np.linalg.norm(x - plan.goal))
-    return {"path_cost": cost, "path_duration": duration, "max_abs_u": max_u,
-            "final_goal_distance": gap,
-            "reaches_goal": bool(plan.path_nodes) and gap <= plan.goal_tolerance + 1e-9}
-
-
-def _baseline_row(task: RunTask, seed: int) -> dict:
-    pr = task.problem
-    system = pipeline.build_system(task.config)
-    limit = task.config.experiment.time_limit
-    if task.planner == "random-rrt":
-        from rrtcolearn.baselines.random_rrt import solve_random_rrt
-
-        problem = PlanningProblem.create(system, START, GOAL, pr.goal_tolerance, u_max=pr.u_max)
-        res = solve_random_rrt(problem, seed=seed, time_limit=limit,
-                               max_iterations=task.config.experiment.max_iterations)
-    elif task.planner.startswith("ompl-"):
-        from rrtcolearn.baselines.ompl_planners import run_ompl_isolated
-
-        res = run_ompl_isolated(task.planner.removeprefix("ompl-"), START, GOAL,
-                                pr.goal_tolerance, u_max=pr.u_max, time_limit=limit,
-                                seed=seed, time_weight=pr.time_weight)
-    elif task.planner == "direct":
-        from rrtcolearn.baselines.direct import solve_direct_rrt
-
-        model = _direct_model(Path(task.exp_dir), task.epoch, pr, task.config)
-        res = solve_direct_rrt(model, START, GOAL, pr.goal_tolerance, seed=seed,
-                               time_limit=limit, u_max=pr.u_max, time_weight=pr.time_weight)
-    else:
-        raise ValueError(f"unknown planner {task.planner!r}")
-    m = path_metrics(system, res.path, 0.01, pr.time_weight, np.array(GOAL), pr.goal_tolerance)
-    return {"solved": res.solved and m["reaches_goal"], "status": res.status,
-            "time": res.cpu_s, "wall_s": res.wall_s, "iterations": res.iterations,
-            "nodes": res.nodes, **m}
 
 
 _DIRECT: dict[str, object] = {}
 
 
-def _direct_model(exp_dir: Path, epoch: int, pr: ProblemSpec, config: Config):
+def _direct_model(task: RunTask):
     from rrtcolearn.baselines.direct import fit_direct_model, load_direct_dataset
 
-    path = exp_dir / f"epoch-{epoch:02d}" / f"direct_{dataset_name(pr)}.npz"
+    path = Path(task.exp_dir) / f"epoch-{task.epoch:02d}" / \
+        f"direct_{dataset_name(task.problem)}.npz"
     if str(path) not in _DIRECT:
         _DIRECT.clear()
         _DIRECT[str(path)] = fit_direct_model(load_direct_dataset(path))
     return _DIRECT[str(path)]
+
+
+# the learned planners' fitted models, made by the offline phase; every other planner is a
+# random-control peer and gets the experiment's input bound for unbounded problems
+_FITTED = {"rrtcolearn": _model, "direct": _direct_model}
+
+
+def make_planner(task: RunTask, fitted: bool = True) -> planners.Planner:
+    """The task's planner (`rrtcolearn.planners.make`) with the problem's time weight; with
+    ``fitted`` a learned planner gets its epoch's model."""
+    params = {"time_weight": task.problem.time_weight}
+    load = _FITTED.get(task.planner)
+    if load is None:
+        params["u_max"] = task.config.experiment.peer_u_max
+    elif fitted:
+        params["model"] = load(task)
+    return planners.make(task.planner, **params)
+
+
+def run_row(task: RunTask, seed: int) -> dict:
+    """One planning run: the plan, re-simulated and checked against the problem (`replay`)."""
+    e = task.config.experiment
+    problem = planning_problem(task.config, task.problem)
+    limit = TerminationCondition(e.time_limit, e.max_iterations, e.cpu_time_limit)
+    plan = make_planner(task).solve(problem, limit, seed)
+    check = replay(problem, plan)
+    return {"solved": plan.solved and check["reaches_goal"], "status": plan.status,
+            "time": plan.planning_cpu_s, "wall_s": plan.planning_time_s,
+            "iterations": plan.iterations, "nodes": plan.nodes,
+            **{k: check[k] for k in ("path_cost", "path_duration", "max_abs_u",
+                                     "final_goal_distance")}}
 
 
 def run_task(task: RunTask) -> list[dict]:
@@ -163,67 +121,43 @@ def run_task(task: RunTask) -> list[dict]:
     rows = []
     for seed in task.seeds:
         try:
-            row = (_rrtcolearn_row(task, seed) if task.planner == "rrtcolearn"
-                   else _baseline_row(task, seed))
+            row = run_row(task, seed)
         except Exception as exc:  # a crashing run is data, not the end of the experiment
             row = {"solved": False, "status": "crash", "time": float("nan"),
                    "error": f"{type(exc).__name__}: {exc}"}
         pr = task.problem
-        row.pop("reaches_goal", None)
         rows.append({"epoch": task.epoch, "seed": seed, "problem": pr.name,
                      "planner": task.planner, "u_max": pr.u_max,
                      "time_weight": pr.time_weight, "goal_tolerance": pr.goal_tolerance, **row})
     return rows
 
 
-def available_planners(names: list[str]) -> tuple[list[str], dict[str, str]]:
-    """Planners that can run here, and why the others cannot."""
-    ok, skipped = [], {}
-    for name in names:
-        if name.startswith("ompl-"):
-            try:
-                from rrtcolearn.baselines.ompl_planners import ompl_available
-                if not ompl_available():
-                    raise ImportError
-            except ImportError:
-                skipped[name] = "the ompl package is not installed (extra 'ompl')"
-                continue
-        if name == "direct":
-            try:
-                from rrtcolearn.baselines.direct import casadi_available
-                if not casadi_available():
-                    raise ImportError
-            except ImportError:
-                skipped[name] = "the casadi package is not installed (extra 'direct')"
-                continue
-        ok.append(name)
-    return ok, skipped
-
-
-def applies(planner: str, problem: ProblemSpec) -> bool:
-    """OMPL's control planners need bounded controls: not the unbounded problem."""
-    return not (planner.startswith("ompl-") and problem.u_max is None)
-
-
-def make_tasks(exp_dir: Path, config: Config, planners: list[str]) -> list[RunTask]:
+def make_tasks(exp_dir: Path, config: Config) -> tuple[list[RunTask], dict[str, str]]:
+    """The runs of every configured planner on every problem it supports, and why the
+    others are not run (``"planner on problem": reason``)."""
     e = config.experiment
-    tasks = []
-    for epoch in range(e.epochs):
-        for pr in e.problems:
-            for planner in planners:
-                if not applies(planner, pr):
-                    continue
-                if planner == "rrtcolearn":
-                    n = e.runs_per_epoch
-                elif planner == "direct":
-                    n = min(e.direct_runs_per_epoch, e.runs_per_epoch)
-                else:
-                    n = e.peer_runs_per_epoch or e.runs_per_epoch
+    tasks, skipped = [], {}
+    for pr in experiment_problems(config):
+        problem = planning_problem(config, pr)
+        for planner in e.planners:
+            probe = RunTask(str(exp_dir), config, 0, pr, planner, ())
+            reason = make_planner(probe, fitted=False).supports(problem)
+            if reason is not None:
+                skipped[f"{planner} on {pr.name}"] = reason
+                continue
+            if planner == "rrtcolearn":
+                n = e.runs_per_epoch
+            elif planner == "direct":
+                n = min(e.direct_runs_per_epoch, e.runs_per_epoch)
+            else:
+                n = e.peer_runs_per_epoch or e.runs_per_epoch
+            for epoch in range(e.epochs):
                 seeds = [run_seed(epoch, r) for r in range(n)]
                 for i in range(0, n, e.runs_per_task):
                     tasks.append(RunTask(str(exp_dir), config, epoch, pr, planner,
                                          tuple(seeds[i: i + e.runs_per_task])))
-    return tasks
+    tasks.sort(key=lambda t: t.epoch)
+    return tasks, skipped
 
 
 @dataclass(frozen=True)
@@ -261,17 +195,17 @@ def run_offline_task(task: OfflineTask) -> list[dict]:
     return rows
 
 
-def offline_phase(exp_dir: Path, config: Config, planners: list[str],
+def offline_phase(exp_dir: Path, config: Config, direct: bool,
                   settings: ExecutionSettings | None,
                   progress: Callable[[str], None] | None = None) -> list[dict]:
     """Each epoch's datasets, one task per (epoch, dataset), run on the execution backend."""
     tasks = []
     for epoch in range(config.experiment.epochs):
         seen = set()
-        for pr in config.experiment.problems:
+        for pr in experiment_problems(config):
             if dataset_name(pr) not in seen:
                 seen.add(dataset_name(pr))
-                tasks.append(OfflineTask(str(exp_dir), config, epoch, pr, "direct" in planners))
+                tasks.append(OfflineTask(str(exp_dir), config, epoch, pr, direct))
     results = map_tasks(run_offline_task, tasks, settings,
                         None if progress is None else lambda i, r: progress(
                             f"epoch {tasks[i].epoch}: {dataset_name(tasks[i].problem)}"))
@@ -296,27 +230,16 @@ def _direct_offline(exp_dir: Path, cfg: Config, pr: ProblemSpec, epoch: int) -> 
             "cpu_s_per_solve": stats.get("cpu_s_per_solve")}
 
 
-def write_csv(path: Path, rows: list[dict], fields: list[str]) -> None:
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=fields, extrasaction="ignore")
-    writer.writeheader()
-    for r in rows:
-        writer.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in fields})
-    atomic_write_text(path, buf.getvalue())
-
-
 def run_experiment(exp_dir: str | Path, config: Config, *,
                    settings: ExecutionSettings | None = None,
                    progress: Callable[[str, int, int], None] | None = None) -> dict:
     """The whole experiment; returns a summary (also written as summary.json)."""
-    from rrtcolearn.experiment.report import write_outputs
-
     exp_dir = Path(exp_dir)
-    planners, skipped = available_planners(config.experiment.planners)
+    tasks, skipped = make_tasks(exp_dir, config)
     pipeline.save_config(config, exp_dir)
-    offline = offline_phase(exp_dir, config, planners, settings,
+    direct = any(t.planner == "direct" for t in tasks)
+    offline = offline_phase(exp_dir, config, direct, settings,
                             None if progress is None else lambda s: progress(s, 0, 0))
-    tasks = make_tasks(exp_dir, config, planners)
     done = [0]
 
     def finished(i: int, rows: list[dict]) -> None:

@@ -96,6 +96,9 @@ class Plan:
     # the path end's distance to the goal region as the planner's goal test measured it
     # (weighted or a user goal function); None: the plain distance to ``goal``
     end_goal_distance: float | None = None
+    # states in the planner's own graph when ``tree`` holds the path only (a peer whose graph
+    # is not ours, e.g. OMPL's PlannerData); None: the tree's nodes
+    graph_states: int | None = None
 
     @property
     def limit_mode(self) -> str | None:
@@ -120,7 +123,8 @@ class Plan:
 
     @property
     def nodes(self) -> int:
-        return self.tree.n_nodes
+        """States in the planner's graph (the tree's nodes unless ``graph_states`` says)."""
+        return self.tree.n_nodes if self.graph_states is None else int(self.graph_states)
 
     @property
     def path_cost(self) -> float:
@@ -185,7 +189,7 @@ class Plan:
             "planning_time_s": self.planning_time_s,
             "planning_cpu_s": self.planning_cpu_s,
             "iterations": self.iterations,
-            "nodes": n,
+            "nodes": self.nodes,
             "path_cost": self.path_cost,
             "path_duration": self.path_duration,
             "u_max": self.symmetric_limit,

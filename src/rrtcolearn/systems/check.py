@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from rrtcolearn.integrate import rk4_step
 from rrtcolearn.systems.base import System
 
 __all__ = ["SystemCheckError", "check_system"]
@@ -450,11 +451,7 @@ class _Checker:
                                (steps + 1, 2 * n + 1))
             _require(np.array_equal(traj[0], z0[i]), s, "rollout", "traj[0] != z0")
             # one RK4 step with system.rhs, to catch kernels compiled for another rhs
-            k1 = self.rhs_batch(z0[i : i + 1])[0]
-            k2 = self.rhs_batch((z0[i] + 0.5 * dt * k1)[None])[0]
-            k3 = self.rhs_batch((z0[i] + 0.5 * dt * k2)[None])[0]
-            k4 = self.rhs_batch((z0[i] + dt * k3)[None])[0]
-            step = z0[i] + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+            step = rk4_step(self.rhs_batch, z0[i : i + 1], dt)[0]
             _require(np.allclose(traj[1], step, rtol=1e-10, atol=1e-12), s, "rollout",
                      f"rollout_jit's first step {traj[1]} != an RK4 step of system.rhs {step}")
             drift, sc = self._drift(traj)
