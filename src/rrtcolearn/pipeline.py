@@ -448,10 +448,14 @@ def read_model_info(run_dir: str | Path) -> tuple[dict, Config, System]:
     return info, config, build_system(config)
 
 
-def load_model(run_dir: str | Path) -> FittedModel:
-    """Rebuild a fitted model from a run directory, checking that its files belong together."""
+def load_model(run_dir: str | Path, *, model_info: tuple[dict, Config, System] | None = None
+               ) -> FittedModel:
+    """Rebuild a fitted model from a run directory, checking that its files belong together.
+
+    ``model_info`` is what `read_model_info` returned for this directory, when the caller
+    has read it already (the system is then not built twice)."""
     run_dir = Path(run_dir)
-    info, config, system = read_model_info(run_dir)
+    info, config, system = model_info if model_info is not None else read_model_info(run_dir)
     functions, meta = LearnedFunctions.load(run_dir / FUNCTIONS_FILE)
     if meta.get("sha256") != info.get("functions_sha256"):
         raise ArtefactError(f"{run_dir / FUNCTIONS_FILE} is not the file the model was "
