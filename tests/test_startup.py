@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import rrtcolearn
 
 SRC = str(Path(rrtcolearn.__file__).parents[1])
@@ -39,3 +41,53 @@ def test_help_imports_no_library():
     code = ("import rrtcolearn.cli as c\nsys.argv = ['rrtcolearn', '--help']\n"
             "try:\n    c.main()\nexcept SystemExit:\n    pass")
     assert imported_after(code) == []
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory) -> Path:
+    from typer.testing import CliRunner
+
+    from rrtcolearn.cli import app
+
+    out = tmp_path_factory.mktemp("startup") / "tiny"
+    result = CliRunner().invoke(app, [
+        "run", "--seed", "3", "--out", str(out), "--set", "generate.n_simulations=3000",
+        "--set", "clean.k_max=500", "--set", "plan.max_iterations=200"])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_plan_imports_neither_sympy_nor_matplotlib(tiny_model, tmp_path):
+    from rrtcolearn.systems import build_record, make
+    from rrtcolearn.systems.pendulum import make_pendulum
+
+    make("pendulum")  # writes the pendulum's build record, where the cache is writable
+    if make("pendulum").derivation is not None:
+        pytest.skip("the system cache is not writable here: no build record")
+    assert build_record.record_key(make_pendulum) is not None
+    plan = ("import rrtcolearn.cli as c\n"
+            f"sys.argv = ['rrtcolearn', 'plan', '--model', {str(tiny_model)!r}, "
+            f"'--seed', '2', '--max-iterations', '100', '--out', "
+            f"{str(tmp_path / 'p.json')!r}{{}}]\n"
+            "try:\n    c.main()\nexcept SystemExit as e:\n    assert e.code == 0, e.code")
+    used = imported_after(plan.format(""))
+    assert "sympy" not in used and "matplotlib" not in used, used
+    assert (tmp_path / "p.json").is_file() and not (tmp_path / "p.png").exists()
+    assert "matplotlib" in imported_after(plan.format(", '--plot'"))
+    assert (tmp_path / "p.png").is_file()
+
+
+def test_load_model_loads_the_kernels_a_plan_calls(tiny_model):
+    """The first plan of a process compiles nothing and loads nothing: every signature it
+    calls was loaded with the model."""
+    from rrtcolearn import pipeline
+
+    model = pipeline.load_model(tiny_model)
+    kernels = ("costate_from_params_jit", "rollout_jit", "input_max_abs_jit",
+               "propagate_jit", "rollout_batch_jit")
+    loaded = {k: list(getattr(model.system, k).signatures) for k in kernels}
+    assert all(len(s) == 1 for s in loaded.values()), loaded
+    for seed, u_max in ((1, None), (2, 1.0)):
+        pipeline.plan(model, [-3.0, 0.0], [0.0, 0.0], 0.3, seed, max_iterations=100,
+                      u_max=u_max)
+    assert {k: list(getattr(model.system, k).signatures) for k in kernels} == loaded

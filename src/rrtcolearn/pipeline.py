@@ -457,11 +457,46 @@ def load_model(run_dir: str | Path, *, model_info: tuple[dict, Config, System] |
     run_dir = Path(run_dir)
     info, config, system = model_info if model_info is not None else read_model_info(run_dir)
     functions, meta = LearnedFunctions.load(run_dir / FUNCTIONS_FILE)
+    load_kernels(system)
     if meta.get("sha256") != info.get("functions_sha256"):
         raise ArtefactError(f"{run_dir / FUNCTIONS_FILE} is not the file the model was "
                             f"fitted with (checksum differs); rerun `rrtcolearn fit`")
     return FittedModel(system, config, functions, functions.max_duration_,
                        config.generate.max_state_distance)
+
+
+def load_kernels(system: System) -> None:
+    """Load the system's compiled kernels that a plan calls (numba's on-disk cache; compiled
+    and cached when absent), so that the first plan of a process costs what later ones do.
+
+    The first compiled function a process calls also initialises numba's compiler (about
+    0.2 s); this moves that cost, and the cache loads, from the first plan to the model's
+    load. Each kernel runs once on a state and parameters in the middle of their boxes, with
+    the argument types `rrtcolearn.integrate` and the planner give it (C-contiguous float64
+    arrays, floats, int64), so the very signatures a plan uses are loaded. A hand-built
+    system's plain Python functions are left alone.
+    """
+    n = system.n_states
+    x = np.ascontiguousarray((system.state_low + system.state_high) / 2, dtype=np.float64)
+    p = np.ascontiguousarray((system.param_low + system.param_high) / 2, dtype=np.float64)
+    z = np.concatenate([x, np.zeros(n + 1)])
+    inf = np.full(n, np.inf)
+    calls = (
+        ("costate_from_params_jit", (x, p, 1.0, np.empty(n))),
+        ("rollout_jit", (z, 1.0, 0.01, 0)),
+        ("input_max_abs_jit", (z,)),
+        ("propagate_jit", (x, np.zeros(system.n_inputs), 0.01, 0, -inf, inf)),
+        ("rollout_batch_jit", (z[None], 1.0, 0.01, 1, 1.0, 1.0, n, -1.0,
+                               np.ones(n), 0)),
+    )
+    for name, args in calls:
+        kernel = getattr(system, name, None)
+        if getattr(kernel, "py_func", None) is None:  # not compiled by numba
+            continue
+        try:
+            kernel(*args)
+        except Exception:  # loading is what counts, not the outcome of the call
+            pass
 
 
 _FROM_CONFIG = object()
