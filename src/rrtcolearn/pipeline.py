@@ -20,20 +20,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rrtcolearn import __version__, derive
 from rrtcolearn.config import Config, read_toml, to_toml, validate
-from rrtcolearn.data.clean import CleaningResult, clean_data
 from rrtcolearn.data.dataset import Dataset
-from rrtcolearn.data.generate import (
-    GenerationStats,
-    generate_data,
-    generation_tasks,
-    merge,
-    run_generation_task,
-)
 from rrtcolearn.data.store import (
     ShardStore,
     atomic_write_text,
@@ -47,13 +40,20 @@ from rrtcolearn.data.store import (
 )
 from rrtcolearn.errors import ArtefactError, ConfigError, EnvironmentProblem
 from rrtcolearn.learn.models import FUNCTIONS_FORMAT, LearnedFunctions
-from rrtcolearn.parallel import ExecutionSettings, map_tasks
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan
 from rrtcolearn.systems import make
 from rrtcolearn.systems.base import System
+
+if TYPE_CHECKING:
+    from rrtcolearn.data.clean import CleaningResult
+    from rrtcolearn.data.generate import GenerationStats
+    from rrtcolearn.parallel import ExecutionSettings
+
+# the offline steps (data.generate, data.clean, parallel) are imported by the functions that
+# run them: loading a model and planning do without them
 
 DATASET_FILE = "dataset.npz"
 CLEANED_FILE = "cleaned.npz"
@@ -197,6 +197,14 @@ def generate(config: Config, run_dir: str | Path,
     ``shards/generate/`` beside a manifest; a rerun with the same configuration loads the
     finished shards and computes only the rest, and a finished dataset is not recomputed.
     """
+    from rrtcolearn.data.generate import (
+        GenerationStats,
+        generation_tasks,
+        merge,
+        run_generation_task,
+    )
+    from rrtcolearn.parallel import map_tasks
+
     run_dir = Path(run_dir)
     system = build_system(config)
     config = resolve(config, system)
@@ -266,6 +274,8 @@ def converge_simulations(config: Config, run_dir: str | Path,
     error on held-out pairs (simulations from their own seed); stop once doubling improved it
     by less than `CONVERGENCE_GAIN`, or when the next stage (estimated at 2.2 times the last)
     would overrun the budget. The last stage's data stay in ``run_dir`` for `generate`."""
+    from rrtcolearn.data.generate import generate_data
+
     run_dir = Path(run_dir)
     system = system if system is not None else build_system(config)
     budget = float(config.generate.offline_budget)
@@ -309,6 +319,8 @@ def clean(config: Config, run_dir: str | Path,
           progress: Callable[[int, int], None] | None = None
           ) -> tuple[Dataset, CleaningResult]:
     """Alg. 3 on the run's ``dataset.npz``; writes ``cleaned.npz``."""
+    from rrtcolearn.data.clean import clean_data
+
     run_dir = Path(run_dir)
     system = build_system(config)
     raw, raw_meta = load_dataset(run_dir / DATASET_FILE, system.name)
