@@ -78,16 +78,19 @@ def test_plan_imports_neither_sympy_nor_matplotlib(tiny_model, tmp_path):
 
 
 def test_load_model_loads_the_kernels_a_plan_calls(tiny_model):
-    """The first plan of a process compiles nothing and loads nothing: every signature it
-    calls was loaded with the model."""
-    from rrtcolearn import pipeline
-
-    model = pipeline.load_model(tiny_model)
-    kernels = ("costate_from_params_jit", "rollout_jit", "input_max_abs_jit",
-               "propagate_jit", "rollout_batch_jit")
-    loaded = {k: list(getattr(model.system, k).signatures) for k in kernels}
-    assert all(len(s) == 1 for s in loaded.values()), loaded
-    for seed, u_max in ((1, None), (2, 1.0)):
-        pipeline.plan(model, [-3.0, 0.0], [0.0, 0.0], 0.3, seed, max_iterations=100,
-                      u_max=u_max)
-    assert {k: list(getattr(model.system, k).signatures) for k in kernels} == loaded
+    """In a fresh process, the first plans compile nothing and load nothing: every kernel
+    signature they call was loaded with the model."""
+    code = f"""
+from rrtcolearn import pipeline
+model = pipeline.load_model({str(tiny_model)!r})
+kernels = ("costate_from_params_jit", "rollout_jit", "input_max_abs_jit", "propagate_jit",
+           "rollout_batch_jit")
+def signatures():
+    return {{k: [str(s) for s in getattr(model.system, k).signatures] for k in kernels}}
+loaded = signatures()
+assert all(len(s) == 1 for s in loaded.values()), loaded
+for seed, u_max in ((1, None), (2, 1.0)):
+    pipeline.plan(model, [-3.0, 0.0], [0.0, 0.0], 0.3, seed, max_iterations=100, u_max=u_max)
+assert signatures() == loaded, (signatures(), loaded)
+"""
+    assert imported_after(code) is not None  # raises on a failed assertion in the process
