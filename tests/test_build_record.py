@@ -8,6 +8,7 @@ import pickle
 
 import numpy as np
 import pytest
+from tests.test_startup import imported_after
 
 from rrtcolearn.systems import _double_integrator, build_record
 from rrtcolearn.systems.pendulum import make_pendulum
@@ -109,3 +110,29 @@ def test_a_recorded_system_pickles_for_workers(cache):
     copy = pickle.loads(pickle.dumps(again))
     assert copy.source == again.source and copy.definition is make_pendulum
     assert copy.costate_from_params is again.costate_from_params
+
+
+def test_a_system_with_configured_limits_has_a_record_of_its_own(cache):
+    limits = ([-2.0], [2.0])
+    built = build_record.build(make_pendulum, limits)
+    again = build_record.build(make_pendulum, limits)
+    assert built.derivation is not None and again.derivation is None
+    assert build_record._same(built, again) and len(records(cache)) == 1
+    assert again.source == with_input_limits(make_pendulum(), -2.0, 2.0).source
+    der, cp = again.symbolic()  # the limited derivation, with the pendulum's phi
+    assert der.input_high == (2.0,) and cp is not None
+    assert with_input_limits(again, None, None).source == make_pendulum().source
+    assert build_record.build(make_pendulum, ([-1.0], [1.0])).derivation is not None
+
+
+def test_configured_limits_need_no_sympy_in_a_later_process(cache):
+    """`plan` on a model with input limits builds its system from a record too."""
+    code = ("from rrtcolearn.config import Config\n"
+            "from rrtcolearn.pipeline import build_system\n"
+            "c = Config()\n"
+            "s = build_system(c.model_copy(update={'system': c.system.model_copy("
+            "update={'u_max': 1.5})}))\n"
+            "assert s.input_high.tolist() == [1.5]")
+    env = {"RRTCOLEARN_CACHE": str(cache.parent)}
+    assert "sympy" in imported_after(code, env)  # the first builds and records
+    assert "sympy" not in imported_after(code, env)

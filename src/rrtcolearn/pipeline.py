@@ -76,6 +76,9 @@ def build_system(config: Config) -> System:
         system = make(config.system.name)
     except ValueError as exc:
         raise ConfigError(f"config: system.name: {exc}") from None
+    # the limits first: a shipped system with configured limits comes from its own build
+    # record, and the overrides below are fields that `with_input_limits` keeps
+    system = _with_configured_limits(config, system)
     g = config.generate
     changes = {}
     for key, n in (("state_low", system.n_states), ("state_high", system.n_states),
@@ -92,7 +95,6 @@ def build_system(config: Config) -> System:
                               f"values, got {scale}")
         changes["input_scale"] = np.asarray(scale, dtype=np.float64)
     system = dataclasses.replace(system, **changes)
-    system = _with_configured_limits(config, system)
     if np.any(system.state_low >= system.state_high):
         raise ConfigError("config: generate.state_low must be below state_high")
     if np.any(system.param_low >= system.param_high):
@@ -143,9 +145,16 @@ def _with_configured_limits(config: Config, system: System) -> System:
         bounds = (None, None) if system.input_limited else None
     if bounds is None:
         return system
-    from rrtcolearn.systems.symbolic import with_input_limits
+    from rrtcolearn.systems.generated import SymbolicSystem
 
     try:
+        if isinstance(system, SymbolicSystem) and system.definition is not None:
+            # a shipped system: the limited one has a build record of its own (no sympy)
+            from rrtcolearn.systems.build_record import build
+
+            return build(system.definition, bounds)
+        from rrtcolearn.systems.symbolic import with_input_limits
+
         return with_input_limits(system, *bounds)
     except ValueError as exc:
         raise ConfigError(f"config: system input limits: {exc}") from None

@@ -9,7 +9,8 @@ the generated module and the system's plain fields (names, boxes, defaults); a l
 with the same key imports that module (its text checked against the digest) and rebuilds the
 same `SymbolicSystem` without sympy. Its ``derivation`` and ``parametrisation`` are then
 derived again from its ``definition`` only when asked for (`SymbolicSystem.symbolic`, e.g.
-to change its input limits).
+to change its input limits). A system with configured input limits (`with_input_limits` of
+the definition's system) has a record of its own, the limits being part of the key.
 
 The key covers every source file of `rrtcolearn.systems` (the definitions, the derivation,
 the code generation) and `rrtcolearn.integrate` (the kernels compiled into every generated
@@ -23,6 +24,7 @@ package's own definitions have records: a user's definition may depend on anythi
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -62,11 +64,23 @@ def _key_files() -> list[Path]:
     return [*sorted(systems.glob("*.py")), systems.parent / "integrate.py"]
 
 
-def record_key(definition: Callable) -> str | None:
-    """SHA-256 of everything the build of ``definition`` depends on (module docstring);
-    None when a version cannot be read (no record is then used or written)."""
+def _limits_text(input_limits: tuple | None) -> str:
+    """The limits exactly (float.hex), or that the definition's own are kept."""
+    if input_limits is None:
+        return "the definition's own input limits"
+    return " ".join("none" if side is None else
+                    ",".join(float(v).hex() for v in np.ravel(side)) for side in input_limits)
+
+
+def record_key(definition: Callable, input_limits: tuple | None = None) -> str | None:
+    """SHA-256 of everything the build of ``definition`` (with ``input_limits``, a (low, high)
+    pair for `with_input_limits`) depends on (module docstring); None when a version cannot
+    be read or ``definition`` is not a named function (no record is then used or written)."""
+    name = getattr(definition, "__qualname__", None)
+    if name is None:
+        return None
     h = hashlib.sha256(f"{RECORD_FORMAT} {RECORD_SCHEMA}\n".encode())
-    h.update(f"{definition.__module__}:{definition.__qualname__}\n".encode())
+    h.update(f"{definition.__module__}:{name}\n{_limits_text(input_limits)}\n".encode())
     try:
         versions = [version(p) for p in ("sympy", "mpmath")]
     except PackageNotFoundError:
@@ -174,13 +188,22 @@ def _same(a: SymbolicSystem, b: SymbolicSystem) -> bool:
     return True
 
 
-def build(definition: Callable[[], SymbolicSystem],
+def _limited(definition: Callable[[], SymbolicSystem], low, high) -> SymbolicSystem:
+    from rrtcolearn.systems.symbolic import with_input_limits
+
+    return with_input_limits(definition(), low, high)
+
+
+def build(definition: Callable[[], SymbolicSystem], input_limits: tuple | None = None,
           cache_dir: str | os.PathLike | None = None) -> SymbolicSystem:
-    """``definition()``, rebuilt from its build record when one matches (no sympy), else
-    built and recorded for the next process."""
-    key = record_key(definition)
+    """``definition()`` (with ``input_limits``: ``with_input_limits(definition(), *input_limits)``),
+    rebuilt from its build record when one matches (no sympy), else built and recorded for the
+    next process. The system's ``definition`` is what builds it again with sympy."""
+    full = definition if input_limits is None else \
+        functools.partial(_limited, definition, *input_limits)
+    key = record_key(definition, input_limits)
     if key is None:
-        return definition()
+        return full()
     path = _record_path(key, cache_dir)
     try:
         record = json.loads(path.read_text(encoding="utf-8"))
@@ -188,15 +211,18 @@ def build(definition: Callable[[], SymbolicSystem],
         record = None
     if isinstance(record, dict):
         try:
-            system = _decode(record, definition, cache_dir)
+            system = _decode(record, full, cache_dir)
         except (KeyError, TypeError, ValueError, AttributeError):
             system = None
         if system is not None:
             return system
-    system = definition()
-    if isinstance(system, SymbolicSystem) and system.source:
+    system = full()
+    if not isinstance(system, SymbolicSystem):
+        return system
+    system = dataclasses.replace(system, definition=full)
+    if system.source:
         record = _encode(system)
-        if record is not None and (again := _decode(record, definition, cache_dir)) is not None \
+        if record is not None and (again := _decode(record, full, cache_dir)) is not None \
                 and _same(system, again):
             try:
                 _write_atomic(path, json.dumps(record, indent=1, allow_nan=False) + "\n")
