@@ -13,7 +13,7 @@ from scipy.special import ndtr, ndtri
 from rrtcolearn import derive
 from rrtcolearn.config import Config, GenerateConfig, PlanConfig, SystemConfig
 from rrtcolearn.errors import ConfigError
-from rrtcolearn.integrate import propagate, rollout
+from rrtcolearn.integrate import propagate_draws, rollout
 from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.planning.funnel import GoalFunnel
 from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
@@ -729,29 +729,31 @@ class RRTCoLearn:
         longest = max(1, round(s.max_duration / s.dt))
         inputs = rng.uniform(*self._control_box, size=(count, sys.n_inputs))
         lengths = rng.integers(1, longest + 1, size=count)
-        valid, why = [], None
-        for c in range(count):
-            # propagation stops after the first state outside the constraints (or not
-            # finite): only that last state needs the check; obstacles need every state
-            states = propagate(sys, x0, inputs[c], s.dt, int(lengths[c]), *self._box)[1:]
-            last, (low, high) = states[-1], self._box
-            reason = None
-            if not (np.all(low <= last) and np.all(last <= high)):  # NaN fails too
-                reason = "state_box" if np.isfinite(last).all() else "nonfinite"
-                states = states[:-1]
-            if prob.validity and len(states):
-                ok = prob.validity(states)
-                if not ok.all():
-                    states, reason = states[: int(np.argmin(ok))], "obstacle"
-            if why is None and not len(states):
-                why = reason
-            valid.append(states)
-        lengths = np.array([len(v) for v in valid])
-        if not lengths.any():
-            self._rejected = why
+        # one compiled call for every draw; a draw's state outside the constraints (or not
+        # finite) is its last, and is dropped
+        flat, counts, stops = propagate_draws(sys, x0, inputs, lengths, s.dt, *self._box)
+        reasons = np.array([None, "state_box", "nonfinite"], dtype=object)[stops]
+        if stops.any():
+            keep = np.ones(len(flat), bool)
+            keep[np.cumsum(counts)[stops > 0] - 1] = False
+            flat, counts = flat[keep], counts - (stops > 0)
+        if prob.validity and len(flat):  # obstacles need every state: cut each draw there
+            ok = prob.validity(flat)
+            if not ok.all():
+                parts, begin = [], 0
+                for c, k in enumerate(counts.tolist()):
+                    part = flat[begin : begin + k]
+                    begin += k
+                    bad = np.flatnonzero(~ok[begin - k : begin])
+                    if bad.size:
+                        part, reasons[c] = part[: bad[0]], "obstacle"
+                    parts.append(part)
+                counts = np.array([len(p) for p in parts])
+                flat = np.concatenate(parts)
+        if not counts.any():
+            self._rejected = reasons[int(np.flatnonzero(counts == 0)[0])]
             return None
-        flat = np.concatenate(valid)
-        ends = np.cumsum(lengths)
+        ends = np.cumsum(counts)
         # a user's goal function is called once per edge: its distances serve the goal test,
         # the directed choice and the end's distance (the planner's progress)
         dist = prob.goal_distance(flat) if prob.goal_fn is not None else None
@@ -765,9 +767,10 @@ class RRTCoLearn:
         else:  # directed: the state nearest the goal region
             j = int(np.argmin(prob.goal_distance(flat) if dist is None else dist))
         c = int(np.searchsorted(ends, j, side="right"))
-        k = j - (int(ends[c - 1]) if c else 0)
+        begin = int(ends[c - 1]) if c else 0
+        k = j - begin
         u = inputs[c]
-        traj = np.vstack([x0[None], valid[c][: k + 1]])
+        traj = np.vstack([x0[None], flat[begin : j + 1]])
         rate = s.time_weight + 0.5 * float(u @ self._input_weight @ u)
         end_distance = float(dist[j]) if dist is not None else \
             float(prob.goal_distance(traj[-1:])[0])
