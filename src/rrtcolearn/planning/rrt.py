@@ -199,6 +199,21 @@ class Edge(NamedTuple):
     end_distance: float | None = None
 
 
+class _Rolled(NamedTuple):
+    """A learned edge integrated and checked up to its goal test (`RRTCoLearn._roll_edge`):
+    its trajectory (steps + 1, 2n + 1), the states after the parent's (steps, n), where the
+    obstacles or the input limit cut it (``end`` states kept), |u*| at each state, the
+    steering parameters and the costate."""
+
+    traj: np.ndarray
+    path: np.ndarray
+    steps: int
+    end: int
+    u_all: np.ndarray
+    params: np.ndarray
+    costate: np.ndarray
+
+
 @dataclass
 class _FunnelSearch:
     """Per tree node: its nearest funnel states (distances and indices, rows filled up to
@@ -454,6 +469,36 @@ class RRTCoLearn:
         self._rejected = "no_costate"
         return np.concatenate(kept_p)[:count], np.concatenate(kept_l)[:count]
 
+    def _draw_edges(self, x0: np.ndarray, params: np.ndarray, costates: np.ndarray,
+                    lam: np.ndarray, z0: np.ndarray) -> list:
+        """The edges (None for a rejected draw) of `_draws`' parameters and costates, in
+        their order: each `_integrate_edge`, with one goal test for all of them (a user's
+        goal function is called once, not once per draw). ``_rejected`` ends as the last
+        rejected draw's reason."""
+        n = self.problem.system.n_states
+        rolled, why = [], []
+        for c in range(len(params)):
+            lam[:] = costates[c]
+            z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
+            r = self._roll_edge(params[c], lam, z0) if self._within_limit(z0) else None
+            rolled.append(r)
+            why.append(self._rejected if r is None else None)
+        paths = [r.path[: r.end] for r in rolled if r is not None]
+        if not paths:
+            return rolled
+        mask = self._goal_mask(np.concatenate(paths))
+        edges, begin = [], 0
+        for c, r in enumerate(rolled):
+            if r is not None:
+                hit = np.flatnonzero(mask[begin : begin + r.end])
+                begin += r.end
+                r = self._finish_edge(r, hit)
+                why[c] = self._rejected if r is None else None
+            edges.append(r)
+        if any(w is not None for w in why):
+            self._rejected = next(w for w in reversed(why) if w is not None)
+        return edges
+
     def _within_limit(self, z0: np.ndarray) -> bool:
         """False (and the outcome noted) when the input at the edge's start already breaks
         the truncation limit."""
@@ -478,6 +523,15 @@ class RRTCoLearn:
     def _integrate_edge(self, x0: np.ndarray, params: np.ndarray, lam: np.ndarray,
                         z0: np.ndarray):
         """The edge of `_edge` for parameters whose start `_start_edge` accepted."""
+        rolled = self._roll_edge(params, lam, z0)
+        if rolled is None:
+            return None
+        return self._finish_edge(rolled, self._goal_hits(rolled.path[: rolled.end]))
+
+    def _roll_edge(self, params: np.ndarray, lam: np.ndarray, z0: np.ndarray):
+        """`_integrate_edge` up to its goal test: the extremal integrated, rejected at the
+        state box, cut at obstacles and at the input limit (`_Rolled`); None (and
+        ``_rejected`` says why) when it is rejected."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         n, u_max = sys.n_states, prob.u_max
         steps = max(1, round(params[-1] / s.dt))
@@ -501,22 +555,29 @@ class RRTCoLearn:
             over = np.flatnonzero(u_all[1:] > u_max)
             if over.size:
                 end = min(end, int(over[0]))
-        hit = self._goal_hits(path[:end])
+        return _Rolled(traj, path, steps, end, u_all, params, lam.copy())
+
+    def _finish_edge(self, rolled: _Rolled, hit: np.ndarray):
+        """The edge of a `_roll_edge` result, cut at its first state in the goal region
+        (``hit``: the indices of its path's states there, within ``rolled.end``)."""
+        s, u_max = self.settings, self.problem.u_max
+        traj, steps, end, params = rolled.traj, rolled.steps, rolled.end, rolled.params
+        n = self.problem.system.n_states
         if hit.size:
             end = int(hit[0]) + 1
         if end == 0:
-            self._rejected = "obstacle" if prob.validity else "input_limit"
+            self._rejected = "obstacle" if self.problem.validity else "input_limit"
             return None
         if end < steps:
             traj = traj[: end + 1]
             steps = end
             params[-1] = steps * s.dt
-        u_abs = float(u_all[: steps + 1].max())
+        u_abs = float(rolled.u_all[: steps + 1].max())
         if u_max is not None and u_abs > u_max:
             self._rejected = "input_limit"
             return None
         return Edge(traj, steps, float(traj[-1, 2 * n]), u_abs, bool(hit.size), params,
-                    lam.copy())
+                    rolled.costate)
 
     def _connect_goal(self, tree: PlannerData, shifts: np.ndarray, tried: np.ndarray,
                       weight: np.ndarray, lam: np.ndarray, z0: np.ndarray):
@@ -679,18 +740,13 @@ class RRTCoLearn:
         aim = aims[rows[best]] if aim_images else target
         sigma = s.sigma_goal if to_goal else s.sigma
         edge, best_d2 = None, np.inf
-        draws = self._draws(rng, x0, prediction, sigma, s.control_samples) \
-            if s.control_samples > 1 and not self._circular.any() else None
-        for c in range(s.control_samples):
-            if draws is None:  # one draw at a time (the paper's planner)
-                cand = self._edge(rng, x0, prediction, sigma, lam, z0)
-            elif c >= len(draws[0]):
-                break
-            else:
-                lam[:] = draws[1][c]
-                z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
-                cand = self._integrate_edge(x0, draws[0][c], lam, z0) \
-                    if self._within_limit(z0) else None
+        if s.control_samples > 1 and not self._circular.any():
+            draws = self._draws(rng, x0, prediction, sigma, s.control_samples)
+            cands = self._draw_edges(x0, *draws, lam, z0)
+        else:  # one draw at a time (the paper's planner)
+            cands = (self._edge(rng, x0, prediction, sigma, lam, z0)
+                     for _ in range(s.control_samples))
+        for cand in cands:
             if cand is None:
                 continue
             if s.control_samples == 1 or cand.hit:  # the paper's single draw, or a goal hit
