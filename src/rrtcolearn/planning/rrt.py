@@ -167,7 +167,13 @@ _TRUNCATION_ADVICE = (" (with limit_mode 'truncate', extremals that break the li
 # goal-biased iterations in a row brought no node nearer the goal, and a funnel of
 # AUTO_FUNNEL extremals once shooting has failed from FUNNEL_AFTER nodes
 CONNECT_AFTER = 50
-CONTROLS_AFTER = 100
+# random-control edges (control_edges None) once this many iterations in a row brought no
+# node nearer the goal. 30, not 100: measured side by side on every problem with an input
+# box (docs/derived_settings.md), the earlier switch cut the median CPU on the sparse_rrt
+# acrobot and cart-pole and the quadrotor by 2-7x and on the torque-limited pendulum rows by
+# 0.67-0.81x, at up to 15% higher first-path cost on the pendulum; a switch at once (1) was
+# faster still there but raised that cost by 54%
+CONTROLS_AFTER = 30
 FUNNEL_AFTER = 20
 AUTO_FUNNEL = 20_000
 
