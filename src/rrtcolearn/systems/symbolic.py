@@ -542,7 +542,7 @@ def generate_source(der: Derivation, line: tuple | None = None) -> str:
         *_assignments(sp, f, [f"out[{i}]" for i in range(n)]),
         "",
         "",
-        "define_kernels(globals())  # rollout_jit, rollout_batch_jit, propagate_jit",
+        "define_kernels(globals())  # rollout_jit, rollout_batch_jit, propagate_jit, ...",
         "",
         "",
         "def _f64(a):",
@@ -751,6 +751,7 @@ _GENERATED = {
     "dynamics": "dynamics",
     "params_from_costate": "params_from_costate",
     "propagate_jit": "propagate_jit",
+    "closed_loop_jit": "closed_loop_jit",
 }
 
 
@@ -914,6 +915,7 @@ def _generated_fields(der: Derivation, cp: CostateParametrisation | None,
         hamiltonian=module.hamiltonian,
         dynamics=module.dynamics,
         propagate_jit=module.propagate_jit,
+        closed_loop_jit=module.closed_loop_jit,
         input_low=np.array(der.input_low),
         input_high=np.array(der.input_high),
         source=source,
