@@ -6,7 +6,9 @@ the learners (`System.metric_scale`) in plain state coordinates, the one the pla
 always ranked its candidates by. scipy's k-d tree cannot take insertions, so the index keeps
 the nodes added since its last build in a small buffer that is searched by brute force, and
 rebuilds when the buffer holds ``rebuild_every`` nodes: the amortised build cost per node is
-O(log n) and a query costs O(log n + rebuild_every).
+O(log n) and a query costs O(log n + rebuild_every). Up to `_SCAN_ALL` nodes a compiled scan
+of all of them is cheaper than scipy's query (its per-call overhead: measured 21.7 against
+27.1 us at 1000 4-D nodes, 38.6 against 26.1 us at 2000).
 """
 
 from __future__ import annotations
