@@ -75,13 +75,16 @@ def test_control_edges_are_deterministic(limited):
 
 def test_off_is_the_learned_planner_and_auto_waits_for_a_stall(limited):
     """With control edges off, or auto before the switch, no control edge is drawn; auto
-    grows the same tree as off until it switches (the switch is the only difference)."""
+    grows the same tree as off until it switches (the switch is the only difference): it
+    cannot switch within fewer than CONTROLS_AFTER iterations."""
+    from rrtcolearn.planning.rrt import CONTROLS_AFTER
+
     off = pipeline.plan(limited, [-np.pi, 0], [0, 0], 0.1, seed=1,
                         config=_with(limited, control_edges=False), time_limit=None,
-                        max_iterations=60)
+                        max_iterations=CONTROLS_AFTER - 1)
     auto = pipeline.plan(limited, [-np.pi, 0], [0, 0], 0.1, seed=1,
                          config=_with(limited, control_edges=None), time_limit=None,
-                         max_iterations=60)
+                         max_iterations=CONTROLS_AFTER - 1)
     assert "edges_by" not in off.extra
     assert auto.extra["edges_by"]["control"] == 0
     assert off.to_dict()["tree"] == auto.to_dict()["tree"]

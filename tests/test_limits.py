@@ -43,12 +43,30 @@ def pendulum_saturated(w: float, u_max: float):
     return rhs
 
 
-def resimulate(plan: dict, rhs, hamiltonian) -> float:
-    """Re-integrate every path edge from its costate; the largest |input| met on the way.
-    Each edge must start on H* = 0 and land on the next node."""
+def resimulate(plan: dict, rhs, hamiltonian, plain=None) -> float:
+    """Re-integrate every path edge from its costate (an extremal) or under its held input
+    (a random-control edge, by the plain dynamics ``plain(x, u)``, the pendulum's by
+    default); the largest |input| met on the way. Each extremal must start on H* = 0; each
+    edge must land on the next node."""
+    if plain is None:
+        def plain(x, u):
+            return np.array([x[1], np.sin(x[0]) + u[0]])
     dt = plan["dt"]
     worst = 0.0
     for e in plan["path"]:
+        if e["costate"] is None:  # a control edge: the input held, x' = plain(x, u)
+            u = np.array(e["control"], dtype=float)
+            x = np.array(e["from"], dtype=float)
+            for _ in range(round(e["duration"] / dt)):
+                k1 = plain(x, u)
+                k2 = plain(x + 0.5 * dt * k1, u)
+                k3 = plain(x + 0.5 * dt * k2, u)
+                x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + plain(x + dt * k3, u))
+            np.testing.assert_allclose(x, e["to"], atol=1e-9)
+            np.testing.assert_allclose((plan["time_weight"] + 0.5 * u @ u) * e["duration"],
+                                       e["cost"], rtol=1e-9)
+            worst = max(worst, float(np.abs(u).max()))
+            continue
         x, lam = np.array(e["from"]), np.array(e["costate"])
         assert abs(hamiltonian(x, lam)) < 1e-9
         z, inputs = rk4(rhs, np.r_[x, lam, 0.0], dt, round(e["duration"] / dt))
@@ -212,11 +230,17 @@ def test_two_input_asymmetric_limits_plan_and_resimulate(tmp_path, monkeypatch):
     d = json.loads(json.dumps(p.to_dict()))
     assert d["limit_mode"] == "saturate" and d["u_max"] is None
     assert d["input_low"] == list(LOW) and d["input_high"] == list(HIGH)
-    resimulate(d, rhs, h_star)
+    def plain(x, u):
+        return np.array([0.5 * np.sin(x[1]) + u[0], 0.5 * np.sin(x[0]) + u[1]])
+
+    resimulate(d, rhs, h_star, plain)
     for e in d["path"]:
-        _, inputs = rk4(rhs, np.r_[e["from"], e["costate"], 0.0], d["dt"],
-                        round(e["duration"] / d["dt"]))
-        u = np.array(inputs)
+        if e["costate"] is None:
+            u = np.array([e["control"]])
+        else:
+            _, inputs = rk4(rhs, np.r_[e["from"], e["costate"], 0.0], d["dt"],
+                            round(e["duration"] / d["dt"]))
+            u = np.array(inputs)
         assert np.all(u >= np.array(LOW)) and np.all(u <= np.array(HIGH))
 
 

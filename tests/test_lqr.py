@@ -142,3 +142,27 @@ def test_a_system_without_an_input_box_needs_learned_functions():
     problem = PlanningProblem.create(system, [-1.0, 0.0], [1.0, 0.0], 0.1)
     with pytest.raises(ConfigError, match="random-control"):
         RRTCoLearn(problem, None, PlannerSettings(goal_lqr=True))
+
+
+def test_the_compiled_loop_is_the_numpy_loop(quad):
+    """`integrate.closed_loop_jit` and the numpy loop of a hand-built System stop at the same
+    step for the same reason with the same states and saturated inputs."""
+    import dataclasses
+
+    problem = _problem(quad)
+    lqr = build_goal_lqr(problem, 0.01)
+    plain = dataclasses.replace(problem, system=dataclasses.replace(quad, closed_loop_jit=None))
+    lqr_plain = dataclasses.replace(lqr, problem=plain)
+    low, high = problem.constraint_box
+    rng = np.random.default_rng(3)
+    ends = set()
+    for _ in range(12):
+        x0 = rng.uniform(problem.state_low, problem.state_high)
+        a = lqr.run(x0, 300, (low, high), lambda s: problem.goal_distance(s) <= 0.1)
+        b = lqr_plain.run(x0, 300, (low, high), lambda s: problem.goal_distance(s) <= 0.1)
+        assert a.end == b.end
+        np.testing.assert_allclose(a.states, b.states, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a.inputs, b.inputs, rtol=0, atol=1e-9)
+        assert np.all(a.inputs >= lqr.u_low) and np.all(a.inputs <= lqr.u_high)
+        ends.add(a.end)
+    assert len(ends) >= 2  # more than one way of stopping was compared

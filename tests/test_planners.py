@@ -137,3 +137,25 @@ def test_propagate_is_one_rk4_with_or_without_compiled_kernels(pendulum):
     path = propagate_controls(pendulum, x0, [[1.3], [-0.5]], steps, 0.01)
     assert path.shape == (51, 2)
     np.testing.assert_array_equal(path[:31], propagate(pendulum, x0, u, 0.01, 30))
+
+
+def test_propagate_draws_is_propagate_draw_by_draw(pendulum):
+    """A batch of control draws (`propagate_draws`, one compiled call) gives each draw's
+    `propagate` states, its count and how it stopped, compiled or in numpy."""
+    import dataclasses
+
+    from rrtcolearn.integrate import propagate, propagate_draws
+
+    x0 = np.array([-3.0, 0.2])
+    inputs, lengths = np.array([[1.3], [-2.0], [0.4]]), np.array([40, 300, 7])
+    low, high = np.array([-np.inf, -1.5]), np.array([np.inf, 1.5])
+    for system in (pendulum, dataclasses.replace(pendulum, propagate_jit=None)):
+        states, counts, stops = propagate_draws(system, x0, inputs, lengths, 0.01, low, high)
+        begin = 0
+        for u, k, count, stop in zip(inputs, lengths, counts, stops, strict=True):
+            one = propagate(pendulum, x0, u, 0.01, int(k), low, high)[1:]
+            np.testing.assert_allclose(states[begin : begin + count], one, rtol=0, atol=1e-12)
+            outside = not (np.all(low <= one[-1]) and np.all(one[-1] <= high))
+            assert count == len(one) and stop == int(outside)
+            begin += count
+        assert begin == len(states) and stops.tolist() == [0, 1, 0]

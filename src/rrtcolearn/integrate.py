@@ -110,19 +110,97 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max, scale=
 
 
 @_numba.njit(cache=True)
-def propagate_jit(x0, u, dt, n_steps, low, high):
-    # RK4 of x' = f(x, u) under the constant input u: states (k + 1, n), k <= n_steps; it
-    # stops after the first state outside [low, high] or not finite (that state included)
+def propagate_jit(x0, inputs, lengths, dt, low, high):
+    # RK4 of x' = f(x, u) from x0 under each constant input inputs[c] held for lengths[c]
+    # steps, each draw stopping after its first state outside [low, high] or not finite
+    # (that state included): the states after x0, draw after draw (total, n), how many
+    # each draw has (c,), and how each stopped (c,): 0 inside throughout, 1 at a state
+    # outside, 2 at a state not finite
     n = x0.shape[0]
-    traj = _np.empty((n_steps + 1, n))
-    traj[0] = x0
+    c = inputs.shape[0]
+    states = _np.empty((lengths.sum(), n))
+    counts = _np.zeros(c, _np.int64)
+    stops = _np.zeros(c, _np.int64)
     k1 = _np.empty(n)
     k2 = _np.empty(n)
     k3 = _np.empty(n)
     k4 = _np.empty(n)
     tmp = _np.empty(n)
-    for s in range(n_steps):
-        x = traj[s]
+    r = 0
+    for j in range(c):
+        u = inputs[j]
+        x = x0
+        for s in range(lengths[j]):
+            dynamics_jit(x, u, k1)
+            for i in range(n):
+                tmp[i] = x[i] + 0.5 * dt * k1[i]
+            dynamics_jit(tmp, u, k2)
+            for i in range(n):
+                tmp[i] = x[i] + 0.5 * dt * k2[i]
+            dynamics_jit(tmp, u, k3)
+            for i in range(n):
+                tmp[i] = x[i] + dt * k3[i]
+            dynamics_jit(tmp, u, k4)
+            inside = True
+            finite = True
+            for i in range(n):
+                v = x[i] + dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+                states[r, i] = v
+                inside = inside and low[i] <= v <= high[i]
+                finite = finite and _math.isfinite(v)
+            x = states[r]
+            r += 1
+            counts[j] += 1
+            if not inside:
+                stops[j] = 1 if finite else 2
+                break
+    return states[:r], counts, stops
+
+
+@_numba.njit(cache=True)
+def closed_loop_jit(x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps, low, high):
+    # the LQR goal connection's loop (planning/lqr.py): u = clip(u_e - K e, u_low, u_high)
+    # held for each RK4 step, e = x - x_e with the coordinates where wrap is true modulo a
+    # turn. It stops after max_steps steps (how = 0), before the first state outside
+    # [low, high] or not finite (1), or after the first state whose value e'Pe exceeds the
+    # start's (2): (states (k + 1, n), inputs (k, m), how)
+    n = x0.shape[0]
+    m = u_e.shape[0]
+    states = _np.empty((max_steps + 1, n))
+    inputs = _np.empty((max_steps, m))
+    states[0] = x0
+    e = _np.empty(n)
+    u = _np.empty(m)
+    k1 = _np.empty(n)
+    k2 = _np.empty(n)
+    k3 = _np.empty(n)
+    k4 = _np.empty(n)
+    tmp = _np.empty(n)
+    two_pi = 2.0 * _math.pi
+    v0 = 0.0
+    for s in range(max_steps + 1):
+        x = states[s]
+        for i in range(n):
+            e[i] = x[i] - x_e[i]
+            if wrap[i]:
+                e[i] = _np.mod(e[i] + _math.pi, two_pi) - _math.pi
+        v = 0.0
+        for i in range(n):
+            row = 0.0
+            for j in range(n):
+                row += P[i, j] * e[j]
+            v += e[i] * row
+        if s == 0:
+            v0 = v
+        elif v > v0:
+            return states[: s + 1], inputs[:s], 2
+        if s == max_steps:
+            break
+        for i in range(m):
+            acc = u_e[i]
+            for j in range(n):
+                acc -= K[i, j] * e[j]
+            u[i] = min(max(acc, u_low[i]), u_high[i])
         dynamics_jit(x, u, k1)
         for i in range(n):
             tmp[i] = x[i] + 0.5 * dt * k1[i]
@@ -135,19 +213,19 @@ def propagate_jit(x0, u, dt, n_steps, low, high):
         dynamics_jit(tmp, u, k4)
         inside = True
         for i in range(n):
-            v = x[i] + dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
-            traj[s + 1, i] = v
-            if not (low[i] <= v <= high[i]):
-                inside = False
+            w = x[i] + dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+            states[s + 1, i] = w
+            inside = inside and low[i] <= w <= high[i]
         if not inside:
-            return traj[: s + 2]
-    return traj
+            return states[: s + 1], inputs[:s], 1
+        inputs[s] = u
+    return states, inputs, 0
 '''
 
 
 def define_kernels(namespace: dict) -> None:
-    """Compile ``rollout_jit``, ``rollout_batch_jit`` and ``propagate_jit`` into a system
-    module's namespace.
+    """Compile ``rollout_jit``, ``rollout_batch_jit``, ``propagate_jit`` and
+    ``closed_loop_jit`` into a system module's namespace.
 
     The module must define compiled ``rhs(z, w, out)``, ``input_max_abs(z)`` and
     ``dynamics_jit(x, u, out)`` first.
@@ -172,28 +250,49 @@ def rk4_step(f, x: np.ndarray, dt: float) -> np.ndarray:
     return x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
+def propagate_draws(system, x0: np.ndarray, inputs: np.ndarray, lengths: np.ndarray,
+                    dt: float, low: np.ndarray, high: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RK4 of the plain dynamics from ``x0`` (n,) under each constant input ``inputs[c]``
+    (c, m) held for ``lengths[c]`` steps of ``dt``, each draw stopping after its first state
+    outside ``low``/``high`` (n,) (+-inf where free) or not finite, that state included.
+    Returns the states after ``x0``, draw after draw (total, n), the number of each draw's
+    states (c,) and how each stopped (c,): 0 inside throughout, 1 at a state outside, 2 at
+    a state not finite. One compiled call for a planner's whole batch of control draws."""
+    x0 = np.ascontiguousarray(x0, dtype=np.float64)
+    inputs = np.ascontiguousarray(inputs, dtype=np.float64)
+    lengths = np.ascontiguousarray(lengths, dtype=np.int64)
+    if system.propagate_jit is not None:
+        return system.propagate_jit(x0, inputs, lengths, float(dt), low, high)
+    n, parts = len(x0), []  # a System built by hand, without compiled kernels
+    counts, stops = np.zeros(len(inputs), np.int64), np.zeros(len(inputs), np.int64)
+    for c, (u, steps) in enumerate(zip(inputs, lengths, strict=True)):
+        x, f = x0[None], (lambda y, ub=u[None]: system.dynamics(y, ub))
+        for _ in range(int(steps)):
+            x = rk4_step(f, x, dt)
+            parts.append(x)
+            counts[c] += 1
+            if not np.all((low <= x) & (x <= high)):
+                stops[c] = 1 if np.isfinite(x).all() else 2
+                break
+    return (np.concatenate(parts) if parts else np.empty((0, n))), counts, stops
+
+
 def propagate(system, x0: np.ndarray, u: np.ndarray, dt: float, n_steps: int,
               low: np.ndarray | None = None, high: np.ndarray | None = None) -> np.ndarray:
     """RK4 of the plain dynamics from ``x0`` (n,) under the constant input ``u`` (m,) for
     ``n_steps`` steps of ``dt``: states (n_steps+1, n). With ``low``/``high`` (n,) (+-inf
     where free) it stops early, after the first state outside them or not finite (that state
     is the last row). Piecewise-constant controls (random-control edges, peers' paths) are
-    integrated with this one function (`propagate_controls`)."""
+    integrated with this one function (`propagate_controls`), a batch of draws with
+    `propagate_draws`."""
     n = len(x0)
     low = np.full(n, -np.inf) if low is None else np.ascontiguousarray(low, dtype=np.float64)
     high = np.full(n, np.inf) if high is None else np.ascontiguousarray(high, dtype=np.float64)
-    x0 = np.ascontiguousarray(x0, dtype=np.float64)
-    u = np.ascontiguousarray(u, dtype=np.float64)
-    if system.propagate_jit is not None:
-        return system.propagate_jit(x0, u, float(dt), int(n_steps), low, high)
-    traj = np.empty((int(n_steps) + 1, n))
-    traj[0] = x0
-    ub = u[None]
-    for s in range(int(n_steps)):  # a System built by hand, without compiled kernels
-        traj[s + 1] = rk4_step(lambda x: system.dynamics(x, ub), traj[s][None], dt)[0]
-        if not np.all((low <= traj[s + 1]) & (traj[s + 1] <= high)):
-            return traj[: s + 2]
-    return traj
+    x0 = np.asarray(x0, dtype=np.float64)
+    states = propagate_draws(system, x0, np.asarray(u, dtype=np.float64)[None],
+                             np.array([int(n_steps)]), dt, low, high)[0]
+    return np.concatenate([x0[None], states])
 
 
 def propagate_controls(system, x0: np.ndarray, controls: np.ndarray, steps: np.ndarray,

@@ -492,30 +492,30 @@ def load_kernels(system: System) -> None:
 
     The first compiled function a process calls also initialises numba's compiler (about
     0.2 s); this moves that cost, and the cache loads, from the first plan to the model's
-    load. Each kernel runs once on a state and parameters in the middle of their boxes, with
-    the argument types `rrtcolearn.integrate` and the planner give it (C-contiguous float64
-    arrays, floats, int64), so the very signatures a plan uses are loaded. A hand-built
-    system's plain Python functions are left alone.
+    load. Each kernel runs once, on a state and parameters in the middle of their boxes and
+    for zero or one step, through the function the planner calls it by (`integrate.rollout`,
+    `integrate.propagate`, `integrate.rollout_batch`, or directly with C-contiguous float64
+    arrays), so the very signatures a plan uses are loaded. The LQR goal connection's loop
+    and the node index's scan, which a plan may need later, load on first use (milliseconds
+    once numba is initialised).
     """
+    from rrtcolearn.integrate import propagate, rollout, rollout_batch
+
     n = system.n_states
     x = np.ascontiguousarray((system.state_low + system.state_high) / 2, dtype=np.float64)
     p = np.ascontiguousarray((system.param_low + system.param_high) / 2, dtype=np.float64)
     z = np.concatenate([x, np.zeros(n + 1)])
     inf = np.full(n, np.inf)
     calls = (
-        ("costate_from_params_jit", (x, p, 1.0, np.empty(n))),
-        ("rollout_jit", (z, 1.0, 0.01, 0)),
-        ("input_max_abs_jit", (z,)),
-        ("propagate_jit", (x, np.zeros(system.n_inputs), 0.01, 0, -inf, inf)),
-        ("rollout_batch_jit", (z[None], 1.0, 0.01, 1, 1.0, 1.0, n, -1.0,
-                               np.ones(n), 0)),
+        lambda: system.costate_from_params_jit(x, p, 1.0, np.empty(n)),
+        lambda: rollout(system, z, 1.0, 0.01, 0),
+        lambda: system.input_max_abs_jit(z),
+        lambda: propagate(system, x, np.zeros(system.n_inputs), 0.01, 0, -inf, inf),
+        lambda: rollout_batch(system, z[None], 1.0, 0.01, 1, 1.0, 1.0, n),
     )
-    for name, args in calls:
-        kernel = getattr(system, name, None)
-        if getattr(kernel, "py_func", None) is None:  # not compiled by numba
-            continue
+    for call in calls:
         try:
-            kernel(*args)
+            call()
         except Exception:  # loading is what counts, not the outcome of the call
             pass
 

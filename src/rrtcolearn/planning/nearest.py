@@ -6,13 +6,55 @@ the learners (`System.metric_scale`) in plain state coordinates, the one the pla
 always ranked its candidates by. scipy's k-d tree cannot take insertions, so the index keeps
 the nodes added since its last build in a small buffer that is searched by brute force, and
 rebuilds when the buffer holds ``rebuild_every`` nodes: the amortised build cost per node is
-O(log n) and a query costs O(log n + rebuild_every).
+O(log n) and a query costs O(log n + rebuild_every). Up to `_SCAN_ALL` nodes a compiled scan
+of all of them is cheaper than scipy's query (its per-call overhead: measured 21.7 against
+27.1 us at 1000 4-D nodes, 38.6 against 26.1 us at 2000).
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
+
+# below this many points a compiled scan of all of them is cheaper than the k-d tree's query
+# (scipy's per-call overhead); the answers are the same either way (see `NodeIndex`)
+_SCAN_ALL = 1024
+
+
+@numba.njit(cache=True)
+def _sqdists(points, idx, lo, hi, q, period):
+    """Squared distances to ``q`` of ``points[idx]`` followed by ``points[lo:hi]``, with the
+    coordinates of positive ``period`` compared the short way round: (indices, distances)."""
+    m = idx.size + hi - lo
+    out_i = np.empty(m, np.int64)
+    out_d = np.empty(m)
+    n = q.size
+    for r in range(m):
+        i = idx[r] if r < idx.size else lo + r - idx.size
+        acc = 0.0
+        for j in range(n):
+            d = points[i, j] - q[j]
+            p = period[j]
+            if p > 0.0:
+                d = np.mod(d + 0.5 * p, p) - 0.5 * p
+            acc += d * d
+        out_i[r] = i
+        out_d[r] = acc
+    return out_i, out_d
+
+
+@numba.njit(cache=True)
+def _least(idx, d2):
+    """The index of least distance, the least index among equal distances."""
+    best = 0
+    for r in range(1, idx.size):
+        if d2[r] < d2[best] or (d2[r] == d2[best] and idx[r] < idx[best]):
+            best = r
+    return idx[best]
+
+
+_NONE = np.empty(0, np.int64)
 
 
 class NodeIndex:
@@ -60,28 +102,18 @@ class NodeIndex:
             y[a] = np.where(y[a] >= self._period[a], 0.0, y[a])  # mod can round up to it
         return y
 
-    def _sqdist(self, points: np.ndarray, q: np.ndarray) -> np.ndarray:
-        diff = points - q
-        a = self._angles
-        if a.size:
-            p = self._period[a]
-            diff[:, a] = np.mod(diff[:, a] + 0.5 * p, p) - 0.5 * p
-        return np.einsum("ij,ij->i", diff, diff)
-
     def nearest(self, target: np.ndarray, k: int) -> np.ndarray:
         """Indices of the (at most) ``k`` nearest points, nearest first."""
         q = self._wrapped(np.asarray(target, dtype=np.float64))
-        parts = []
-        if self._tree is not None:
+        if self._tree is None or self._size <= _SCAN_ALL:  # every point, compiled
+            tree_idx, lo = _NONE, 0
+        else:
             _, i = self._tree.query(q, k=min(k, self._indexed))
-            parts.append(np.atleast_1d(i).astype(np.int64))
-        if self._size > self._indexed:
-            parts.append(np.arange(self._indexed, self._size))
-        idx = np.concatenate(parts)
-        # distances recomputed one way for both parts, so equal points compare equal
+            tree_idx, lo = np.atleast_1d(i).astype(np.int64), self._indexed
+        # distances computed one way for every candidate, so equal points compare equal
         # wherever they are stored
-        d2 = self._sqdist(self._points[idx], q)
+        idx, d2 = _sqdists(self._points, tree_idx, lo, self._size, q, self._period)
         if k == 1:  # the same answer as the sort below: least distance, then least index
-            return idx[d2 == d2.min()].min(keepdims=True)
+            return np.array([_least(idx, d2)])
         order = np.lexsort((idx, d2))[:k]
         return idx[order]

@@ -13,7 +13,7 @@ from scipy.special import ndtr, ndtri
 from rrtcolearn import derive
 from rrtcolearn.config import Config, GenerateConfig, PlanConfig, SystemConfig
 from rrtcolearn.errors import ConfigError
-from rrtcolearn.integrate import propagate, rollout
+from rrtcolearn.integrate import propagate_draws, rollout
 from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.planning.funnel import GoalFunnel
 from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
@@ -167,7 +167,13 @@ _TRUNCATION_ADVICE = (" (with limit_mode 'truncate', extremals that break the li
 # goal-biased iterations in a row brought no node nearer the goal, and a funnel of
 # AUTO_FUNNEL extremals once shooting has failed from FUNNEL_AFTER nodes
 CONNECT_AFTER = 50
-CONTROLS_AFTER = 100
+# random-control edges (control_edges None) once this many iterations in a row brought no
+# node nearer the goal. 30, not 100: measured side by side on every problem with an input
+# box (docs/derived_settings.md), the earlier switch cut the median CPU on the sparse_rrt
+# acrobot and cart-pole and the quadrotor by 2-7x and on the torque-limited pendulum rows by
+# 0.67-0.81x, at up to 15% higher first-path cost on the pendulum; a switch at once (1) was
+# faster still there but raised that cost by 54%
+CONTROLS_AFTER = 30
 FUNNEL_AFTER = 20
 AUTO_FUNNEL = 20_000
 
@@ -197,6 +203,21 @@ class Edge(NamedTuple):
     costate: np.ndarray | None = None
     control: np.ndarray | None = None
     end_distance: float | None = None
+
+
+class _Rolled(NamedTuple):
+    """A learned edge integrated and checked up to its goal test (`RRTCoLearn._roll_edge`):
+    its trajectory (steps + 1, 2n + 1), the states after the parent's (steps, n), where the
+    obstacles or the input limit cut it (``end`` states kept), |u*| at each state, the
+    steering parameters and the costate."""
+
+    traj: np.ndarray
+    path: np.ndarray
+    steps: int
+    end: int
+    u_all: np.ndarray
+    params: np.ndarray
+    costate: np.ndarray
 
 
 @dataclass
@@ -454,6 +475,36 @@ class RRTCoLearn:
         self._rejected = "no_costate"
         return np.concatenate(kept_p)[:count], np.concatenate(kept_l)[:count]
 
+    def _draw_edges(self, x0: np.ndarray, params: np.ndarray, costates: np.ndarray,
+                    lam: np.ndarray, z0: np.ndarray) -> list:
+        """The edges (None for a rejected draw) of `_draws`' parameters and costates, in
+        their order: each `_integrate_edge`, with one goal test for all of them (a user's
+        goal function is called once, not once per draw). ``_rejected`` ends as the last
+        rejected draw's reason."""
+        n = self.problem.system.n_states
+        rolled, why = [], []
+        for c in range(len(params)):
+            lam[:] = costates[c]
+            z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
+            r = self._roll_edge(params[c], lam, z0) if self._within_limit(z0) else None
+            rolled.append(r)
+            why.append(self._rejected if r is None else None)
+        paths = [r.path[: r.end] for r in rolled if r is not None]
+        if not paths:
+            return rolled
+        mask = self._goal_mask(np.concatenate(paths))
+        edges, begin = [], 0
+        for c, r in enumerate(rolled):
+            if r is not None:
+                hit = np.flatnonzero(mask[begin : begin + r.end])
+                begin += r.end
+                r = self._finish_edge(r, hit)
+                why[c] = self._rejected if r is None else None
+            edges.append(r)
+        if any(w is not None for w in why):
+            self._rejected = next(w for w in reversed(why) if w is not None)
+        return edges
+
     def _within_limit(self, z0: np.ndarray) -> bool:
         """False (and the outcome noted) when the input at the edge's start already breaks
         the truncation limit."""
@@ -478,6 +529,15 @@ class RRTCoLearn:
     def _integrate_edge(self, x0: np.ndarray, params: np.ndarray, lam: np.ndarray,
                         z0: np.ndarray):
         """The edge of `_edge` for parameters whose start `_start_edge` accepted."""
+        rolled = self._roll_edge(params, lam, z0)
+        if rolled is None:
+            return None
+        return self._finish_edge(rolled, self._goal_hits(rolled.path[: rolled.end]))
+
+    def _roll_edge(self, params: np.ndarray, lam: np.ndarray, z0: np.ndarray):
+        """`_integrate_edge` up to its goal test: the extremal integrated, rejected at the
+        state box, cut at obstacles and at the input limit (`_Rolled`); None (and
+        ``_rejected`` says why) when it is rejected."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         n, u_max = sys.n_states, prob.u_max
         steps = max(1, round(params[-1] / s.dt))
@@ -501,22 +561,29 @@ class RRTCoLearn:
             over = np.flatnonzero(u_all[1:] > u_max)
             if over.size:
                 end = min(end, int(over[0]))
-        hit = self._goal_hits(path[:end])
+        return _Rolled(traj, path, steps, end, u_all, params, lam.copy())
+
+    def _finish_edge(self, rolled: _Rolled, hit: np.ndarray):
+        """The edge of a `_roll_edge` result, cut at its first state in the goal region
+        (``hit``: the indices of its path's states there, within ``rolled.end``)."""
+        s, u_max = self.settings, self.problem.u_max
+        traj, steps, end, params = rolled.traj, rolled.steps, rolled.end, rolled.params
+        n = self.problem.system.n_states
         if hit.size:
             end = int(hit[0]) + 1
         if end == 0:
-            self._rejected = "obstacle" if prob.validity else "input_limit"
+            self._rejected = "obstacle" if self.problem.validity else "input_limit"
             return None
         if end < steps:
             traj = traj[: end + 1]
             steps = end
             params[-1] = steps * s.dt
-        u_abs = float(u_all[: steps + 1].max())
+        u_abs = float(rolled.u_all[: steps + 1].max())
         if u_max is not None and u_abs > u_max:
             self._rejected = "input_limit"
             return None
         return Edge(traj, steps, float(traj[-1, 2 * n]), u_abs, bool(hit.size), params,
-                    lam.copy())
+                    rolled.costate)
 
     def _connect_goal(self, tree: PlannerData, shifts: np.ndarray, tried: np.ndarray,
                       weight: np.ndarray, lam: np.ndarray, z0: np.ndarray):
@@ -679,18 +746,13 @@ class RRTCoLearn:
         aim = aims[rows[best]] if aim_images else target
         sigma = s.sigma_goal if to_goal else s.sigma
         edge, best_d2 = None, np.inf
-        draws = self._draws(rng, x0, prediction, sigma, s.control_samples) \
-            if s.control_samples > 1 and not self._circular.any() else None
-        for c in range(s.control_samples):
-            if draws is None:  # one draw at a time (the paper's planner)
-                cand = self._edge(rng, x0, prediction, sigma, lam, z0)
-            elif c >= len(draws[0]):
-                break
-            else:
-                lam[:] = draws[1][c]
-                z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
-                cand = self._integrate_edge(x0, draws[0][c], lam, z0) \
-                    if self._within_limit(z0) else None
+        if s.control_samples > 1 and not self._circular.any():
+            draws = self._draws(rng, x0, prediction, sigma, s.control_samples)
+            cands = self._draw_edges(x0, *draws, lam, z0)
+        else:  # one draw at a time (the paper's planner)
+            cands = (self._edge(rng, x0, prediction, sigma, lam, z0)
+                     for _ in range(s.control_samples))
+        for cand in cands:
             if cand is None:
                 continue
             if s.control_samples == 1 or cand.hit:  # the paper's single draw, or a goal hit
@@ -729,29 +791,31 @@ class RRTCoLearn:
         longest = max(1, round(s.max_duration / s.dt))
         inputs = rng.uniform(*self._control_box, size=(count, sys.n_inputs))
         lengths = rng.integers(1, longest + 1, size=count)
-        valid, why = [], None
-        for c in range(count):
-            # propagation stops after the first state outside the constraints (or not
-            # finite): only that last state needs the check; obstacles need every state
-            states = propagate(sys, x0, inputs[c], s.dt, int(lengths[c]), *self._box)[1:]
-            last, (low, high) = states[-1], self._box
-            reason = None
-            if not (np.all(low <= last) and np.all(last <= high)):  # NaN fails too
-                reason = "state_box" if np.isfinite(last).all() else "nonfinite"
-                states = states[:-1]
-            if prob.validity and len(states):
-                ok = prob.validity(states)
-                if not ok.all():
-                    states, reason = states[: int(np.argmin(ok))], "obstacle"
-            if why is None and not len(states):
-                why = reason
-            valid.append(states)
-        lengths = np.array([len(v) for v in valid])
-        if not lengths.any():
-            self._rejected = why
+        # one compiled call for every draw; a draw's state outside the constraints (or not
+        # finite) is its last, and is dropped
+        flat, counts, stops = propagate_draws(sys, x0, inputs, lengths, s.dt, *self._box)
+        reasons = np.array([None, "state_box", "nonfinite"], dtype=object)[stops]
+        if stops.any():
+            keep = np.ones(len(flat), bool)
+            keep[np.cumsum(counts)[stops > 0] - 1] = False
+            flat, counts = flat[keep], counts - (stops > 0)
+        if prob.validity and len(flat):  # obstacles need every state: cut each draw there
+            ok = prob.validity(flat)
+            if not ok.all():
+                parts, begin = [], 0
+                for c, k in enumerate(counts.tolist()):
+                    part = flat[begin : begin + k]
+                    begin += k
+                    bad = np.flatnonzero(~ok[begin - k : begin])
+                    if bad.size:
+                        part, reasons[c] = part[: bad[0]], "obstacle"
+                    parts.append(part)
+                counts = np.array([len(p) for p in parts])
+                flat = np.concatenate(parts)
+        if not counts.any():
+            self._rejected = reasons[int(np.flatnonzero(counts == 0)[0])]
             return None
-        flat = np.concatenate(valid)
-        ends = np.cumsum(lengths)
+        ends = np.cumsum(counts)
         # a user's goal function is called once per edge: its distances serve the goal test,
         # the directed choice and the end's distance (the planner's progress)
         dist = prob.goal_distance(flat) if prob.goal_fn is not None else None
@@ -765,9 +829,10 @@ class RRTCoLearn:
         else:  # directed: the state nearest the goal region
             j = int(np.argmin(prob.goal_distance(flat) if dist is None else dist))
         c = int(np.searchsorted(ends, j, side="right"))
-        k = j - (int(ends[c - 1]) if c else 0)
+        begin = int(ends[c - 1]) if c else 0
+        k = j - begin
         u = inputs[c]
-        traj = np.vstack([x0[None], valid[c][: k + 1]])
+        traj = np.vstack([x0[None], flat[begin : j + 1]])
         rate = s.time_weight + 0.5 * float(u @ self._input_weight @ u)
         end_distance = float(dist[j]) if dist is not None else \
             float(prob.goal_distance(traj[-1:])[0])

@@ -43,8 +43,11 @@ class System:
     params_from_costate : ``(x (N,n), lambda (N,n)) -> p (N,k)``, the inverse of
         ``costate_from_params`` on H* = 0 (needed for data simulated backwards from a goal,
         whose costate is known only at the far end); None if the system has none.
-    propagate_jit : compiled ``(x0 (n,), u (m,), dt, steps) -> states (steps+1, n)``, RK4 of
-        ``dynamics`` under a constant input (`rrtcolearn.integrate.propagate`).
+    propagate_jit : compiled RK4 of ``dynamics`` from ``x0`` under a batch of constant
+        inputs, each held for its number of steps and stopped at the state constraints
+        (`rrtcolearn.integrate.propagate_draws`, `rrtcolearn.integrate.propagate`).
+    closed_loop_jit : compiled RK4 of ``dynamics`` under a saturated linear feedback, the
+        LQR goal connection's loop (`rrtcolearn.planning.lqr.GoalLQR.run`).
     input_low, input_high : (m,) box of the inputs (+-inf where unbounded; None: no limits).
         With limits, u* is the minimiser of H over the box and every kernel above uses it
         (saturated optimal control, `rrtcolearn.systems.symbolic.limit_derivation`).
@@ -76,6 +79,7 @@ class System:
     input_low: np.ndarray | None = None
     input_high: np.ndarray | None = None
     propagate_jit: Callable | None = None
+    closed_loop_jit: Callable | None = None
 
     @property
     def metric_scale(self) -> np.ndarray:

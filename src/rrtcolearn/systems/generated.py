@@ -123,6 +123,7 @@ _GENERATED = {
     "dynamics": "dynamics",
     "params_from_costate": "params_from_costate",
     "propagate_jit": "propagate_jit",
+    "closed_loop_jit": "closed_loop_jit",
 }
 
 
