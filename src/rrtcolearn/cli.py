@@ -424,7 +424,6 @@ def plan(
     def body():
         from rrtcolearn import pipeline
         from rrtcolearn.config import Config, add_obstacles, load_config
-        from rrtcolearn.planning.problem import PlanningProblem
 
         run_dir = model if model is not None else Path("runs") / _run_name(
             Config() if system_name is None else Config().model_copy(update={
@@ -457,10 +456,7 @@ def plan(
         if workers is not None:
             raise ConfigError("--workers plans the queries of a file: give --queries")
         start_x, goal_x = pipeline.query_states(cfg, system)
-        PlanningProblem.create(system, start_x, goal_x, cfg.plan.goal_tolerance,
-                               obstacles=[o.model_dump() for o in cfg.plan.obstacles],
-                               state_low=cfg.plan.state_low, state_high=cfg.plan.state_high,
-                               goal_weights=cfg.plan.goal_weights)
+        pipeline.make_problem(system, cfg, start_x, goal_x, cfg.plan.goal_tolerance)
         out_path = out if out is not None else run_dir / "plan.json"
         if out_path.is_dir():
             raise ConfigError(f"--out {out_path} is a directory; give a file name like "
@@ -481,8 +477,8 @@ def _plan_queries(run_dir: Path, cfg: Config, system, path: Path, out: Path | No
     """`plan --queries`: every query of the file, one plan file each, and a summary."""
     import numpy as np
 
+    from rrtcolearn import pipeline
     from rrtcolearn.parallel import ExecutionSettings
-    from rrtcolearn.planning.problem import PlanningProblem
     from rrtcolearn.queries import plan_query_file, read_queries
 
     if given:
@@ -491,11 +487,7 @@ def _plan_queries(run_dir: Path, cfg: Config, system, path: Path, out: Path | No
     qs = read_queries(path, cfg.plan.goal_tolerance, system.n_states)
     for i, q in enumerate(qs):  # every query checked before any is planned
         try:
-            PlanningProblem.create(system, q.start, q.goal, q.goal_tolerance,
-                                   obstacles=[o.model_dump() for o in cfg.plan.obstacles],
-                                   state_low=cfg.plan.state_low,
-                                   state_high=cfg.plan.state_high,
-                                   goal_weights=cfg.plan.goal_weights)
+            pipeline.make_problem(system, cfg, q.start, q.goal, q.goal_tolerance)
         except ValueError as exc:
             raise ConfigError(f"{path}: query {i}: {exc}") from None
     out_dir = out if out is not None else run_dir / "queries"

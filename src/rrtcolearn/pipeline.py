@@ -534,28 +534,25 @@ def query_states(config: Config, system: System) -> tuple[list[float], list[floa
     return list(start), list(goal)
 
 
-def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, *,
-         config: Config | None = None, time_limit: float | None = 10.0,
-         max_iterations: int | None = None, u_max=_FROM_CONFIG, obstacles=_FROM_CONFIG,
-         is_valid=None, goal_fn=None, goal_sampler=None) -> Plan:
-    """Plan one query with a fitted model (Alg. 1).
+def make_problem(system: System, config: Config, start, goal, goal_tolerance: float, *,
+                 u_max=_FROM_CONFIG, obstacles=_FROM_CONFIG, is_valid=None, goal_fn=None,
+                 goal_sampler=None) -> PlanningProblem:
+    """The query as every planner gets it (`plan` and the experiment's peers alike): the
+    configuration's state constraints, goal weights and angle wrapping, its ``u_max`` and
+    obstacles unless given, and the system's goal region for its standard goal.
 
-    ``u_max`` and ``obstacles`` default to the configuration's (``config`` or the model's);
-    ``is_valid(states) -> bool array`` adds a user state validity checker;
-    ``goal_fn(states) -> distances`` and ``goal_sampler(rng) -> state`` a user goal region
-    (`PlanningProblem`; reached where the distance is at most ``goal_tolerance``); a system
-    whose ``defaults`` hold them plans to that region when ``goal`` is its default goal. A
-    model whose
-    system saturates its inputs plans within the limits it learned with (a different
-    ``u_max`` needs a model trained for it: ConfigError); a model of the unbounded system
-    plans under ``u_max`` by truncation (edges whose input exceeds it are rejected or cut,
-    plan.input_limit).
+    ``is_valid(states) -> bool array`` adds a user state validity checker; ``goal_fn(states)
+    -> distances`` and ``goal_sampler(rng) -> state`` a user goal region (reached where the
+    distance is at most ``goal_tolerance``); a system whose ``defaults`` hold them plans to
+    that region when ``goal`` is its default goal. A system that saturates its inputs plans
+    within its own limits (a different ``u_max`` needs a model trained for it:
+    ConfigError); an unbounded one plans under ``u_max`` by truncation (edges whose input
+    exceeds it are rejected or cut, plan.input_limit).
     """
-    cfg = config or model.config
     if u_max is _FROM_CONFIG:
-        u_max = cfg.system.u_max
-    if model.system.input_limited:
-        low, high = model.system.input_limits()
+        u_max = config.system.u_max
+    if system.input_limited:
+        low, high = system.input_limits()
         if u_max is not None:
             wanted = np.broadcast_to(np.asarray(u_max, dtype=float), low.shape)
             if not (np.array_equal(-low, high) and np.array_equal(high, wanted)):
@@ -568,20 +565,31 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
         raise ConfigError("a model of the unbounded system can plan under a single u_max "
                           "only (by truncation); train a model with the limits instead")
     if obstacles is _FROM_CONFIG:
-        obstacles = [o.model_dump() for o in cfg.plan.obstacles]
-    defaults = model.system.defaults
+        obstacles = [o.model_dump() for o in config.plan.obstacles]
+    defaults = system.defaults
     if goal_fn is None and "goal_fn" in defaults and defaults.get("goal") is not None \
             and np.array_equal(np.asarray(goal, dtype=float),
                                np.asarray(defaults["goal"], dtype=float)):
         # the system's standard query comes with its goal region
         goal_fn, goal_sampler = defaults["goal_fn"], defaults.get("goal_sampler")
-    problem = PlanningProblem.create(model.system, start, goal, goal_tolerance, u_max=u_max,
-                                     obstacles=obstacles, is_valid=is_valid,
-                                     wrap_goal=cfg.plan.wrap_goal,
-                                     state_low=cfg.plan.state_low,
-                                     state_high=cfg.plan.state_high,
-                                     goal_weights=cfg.plan.goal_weights, goal_fn=goal_fn,
-                                     goal_sampler=goal_sampler)
+    p = config.plan
+    return PlanningProblem.create(system, start, goal, goal_tolerance, u_max=u_max,
+                                  obstacles=obstacles, is_valid=is_valid,
+                                  wrap_goal=p.wrap_goal, state_low=p.state_low,
+                                  state_high=p.state_high, goal_weights=p.goal_weights,
+                                  goal_fn=goal_fn, goal_sampler=goal_sampler)
+
+
+def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, *,
+         config: Config | None = None, time_limit: float | None = 10.0,
+         max_iterations: int | None = None, u_max=_FROM_CONFIG, obstacles=_FROM_CONFIG,
+         is_valid=None, goal_fn=None, goal_sampler=None) -> Plan:
+    """Plan one query with a fitted model (Alg. 1): the query `make_problem` makes of the
+    arguments (``config`` defaults to the model's), grown into a tree by `RRTCoLearn`."""
+    cfg = config or model.config
+    problem = make_problem(model.system, cfg, start, goal, goal_tolerance, u_max=u_max,
+                           obstacles=obstacles, is_valid=is_valid, goal_fn=goal_fn,
+                           goal_sampler=goal_sampler)
     planner = RRTCoLearn(problem, model.functions, model.planner_settings(config))
     result = planner.solve(TerminationCondition(time_limit, max_iterations), seed)
     result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None

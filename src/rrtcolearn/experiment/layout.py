@@ -75,21 +75,12 @@ def problem_system(config: Config, problem: ProblemSpec) -> System:
 def planning_problem(config: Config, problem: ProblemSpec,
                      system: System | None = None) -> PlanningProblem:
     """The `PlanningProblem` every planner gets for ``problem``: the configured query (or
-    the system's standard one, with its goal region), state constraints, goal test and
-    obstacles; a system that saturates its inputs carries the limit itself (u_max None)."""
+    the system's standard one, with its goal region), as `pipeline.make_problem` makes it
+    with the problem's tolerance and torque limit (carried by a saturating system itself)."""
     system = problem_system(config, problem) if system is None else system
     start, goal = pipeline.query_states(config, system)
-    defaults = system.defaults
-    goal_fn = goal_sampler = None
-    if "goal_fn" in defaults and config.plan.goal is None:
-        goal_fn, goal_sampler = defaults["goal_fn"], defaults.get("goal_sampler")
-    p = config.plan
-    return PlanningProblem.create(
-        system, start, goal, problem.goal_tolerance,
-        u_max=None if system.input_limited else problem.u_max,
-        obstacles=[o.model_dump() for o in p.obstacles], wrap_goal=p.wrap_goal,
-        state_low=p.state_low, state_high=p.state_high, goal_weights=p.goal_weights,
-        goal_fn=goal_fn, goal_sampler=goal_sampler)
+    return pipeline.make_problem(system, config, start, goal, problem.goal_tolerance,
+                                 u_max=problem.u_max)
 
 
 def write_csv(path, rows: list[dict], fields: list[str]) -> None:
