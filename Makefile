@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench bench-systems bench-external bench-derived bench-iterations bench-limits lint clean-venv
+.PHONY: run test bench bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup lint clean-venv
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -42,6 +42,11 @@ bench-iterations: $(STAMP)
 # the input-limit table with its comparison row (w = 10 at the paper's cost bound): about 11 minutes
 bench-limits: $(STAMP)
 	$(BIN)/python bench/limits_bench.py
+
+# one `rrtcolearn plan` and `--help` in fresh processes, first against warm planning CPU
+# (about a minute; makes runs/pendulum-swingup first if it holds no model)
+bench-startup: $(STAMP)
+	$(BIN)/python bench/startup.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench

@@ -60,13 +60,26 @@ def test_steps_one_by_one_equal_the_run(tiny_run, tmp_path):
     _a, ma = load_dataset(out / "cleaned.npz")
     _b, mb = load_dataset(tiny_run / "cleaned.npz")
     assert ma["sha256"] == mb["sha256"]
-    result = invoke("plan", "--model", str(out), "--start=-3.14159,0", "--goal", "0,0",
-                    "--goal-tolerance", "0.3", "--seed", "2", "--max-iterations", "300",
-                    "--out", str(tmp_path / "p.json"))
+    query = ["plan", "--model", str(out), "--start=-3.14159,0", "--goal", "0,0",
+             "--goal-tolerance", "0.3", "--seed", "2", "--max-iterations", "300",
+             "--out", str(tmp_path / "p.json")]
+    result = invoke(*query, "--plot")
     assert result.exit_code == 0, result.output
     plan = json.loads((tmp_path / "p.json").read_text())
     assert plan["goal_tolerance"] == 0.3 and plan["iterations"] <= 300
     assert (tmp_path / "p.png").is_file()
+    # without --plot no picture, and the one of the earlier plan is not left beside it
+    result = invoke(*query)
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "p.json").read_text())["path"] == plan["path"]
+    assert not (tmp_path / "p.png").exists()
+
+
+def test_plot_is_for_one_plan(tiny_run, tmp_path):
+    queries = tmp_path / "q.jsonl"
+    queries.write_text('{"start": [-3.0, 0.0], "goal": [0.0, 0.0]}\n')
+    result = invoke("plan", "--model", str(tiny_run), "--queries", str(queries), "--plot")
+    assert_one_line_error(result, contains="--plot")
 
 
 @pytest.mark.parametrize("start, goal, tol, contains", [

@@ -1,27 +1,24 @@
-"""Command-line interface: parse, validate, call the library, print."""
+"""Command-line interface: parse, validate, call the library, print.
+
+Only typer, rich and the standard library are imported at start-up: the library (numpy,
+numba, scipy, pydantic, sympy, matplotlib) is imported by the command that needs it, so
+``--help`` and a single ``plan`` pay only for what they use.
+"""
 
 from __future__ import annotations
 
+import gc
+import os
 import re
 import signal
 import sys
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import numpy as np
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    SpinnerColumn,
-    TextColumn,
-    TimeElapsedColumn,
-)
-from rich.table import Table
 from typer.core import TyperGroup
 
 try:  # recent typer versions vendor click; older ones use it directly
@@ -29,11 +26,13 @@ try:  # recent typer versions vendor click; older ones use it directly
 except ImportError:  # pragma: no cover
     from click import exceptions as _click_errors
 
-from rrtcolearn import __version__, pipeline
-from rrtcolearn.config import Config, add_obstacles, load_config, read_toml
-from rrtcolearn.data.store import write_json
 from rrtcolearn.errors import ConfigError, RRTCoLearnError
-from rrtcolearn.parallel import ExecutionSettings
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
+
+    from rrtcolearn.config import Config
+    from rrtcolearn.pipeline import FittedModel
 
 
 class _OneLineErrors(TyperGroup):
@@ -144,6 +143,8 @@ def _config(config: Path | None, seed: int | None, overrides: list[str] | None,
             run_dir: Path | None = None, u_max: float | None = None,
             obstacles: list[str] | None = None, system: str | None = None,
             offline_budget: float | None = None) -> Config:
+    from rrtcolearn.config import add_obstacles, load_config, read_toml
+
     base = {}
     if run_dir is not None and (run_dir / "config.toml").is_file():
         base = read_toml(run_dir / "config.toml")
@@ -170,6 +171,8 @@ def _options(given: dict[tuple[str, str], object]) -> dict[str, dict[str, object
 def _run_name(cfg: Config) -> str:
     """The run's name: the configured one, or for another system than the pendulum under the
     default name, the system's (so a user system's run does not land in the pendulum's)."""
+    from rrtcolearn.config import Config
+
     if cfg.name == Config().name and cfg.system.name != Config().system.name:
         return re.sub(r"[^A-Za-z0-9._-]", "-", cfg.system.name).lstrip("-._") or cfg.name
     return cfg.name
@@ -183,12 +186,23 @@ def _run_dir(out: Path | None, cfg: Config) -> Path:
 
 
 def _progress() -> Progress:
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        SpinnerColumn,
+        TextColumn,
+        TimeElapsedColumn,
+    )
+
     return Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
                     MofNCompleteColumn(), TimeElapsedColumn(), console=console,
                     disable=not console.is_terminal and not _state.get("force_progress"))
 
 
 def _do_generate(cfg: Config, run_dir: Path, settings=None) -> dict:
+    from rrtcolearn import pipeline
+
     # the settings left to the library first (a pilot of simulations for the cost bound)
     cfg, derive_cpu = pipeline.timed(pipeline.resolve, cfg)
     with _progress() as bar:
@@ -207,6 +221,8 @@ def _do_generate(cfg: Config, run_dir: Path, settings=None) -> dict:
 def _print_derived(cfg: Config) -> None:
     """What the library derived for this run, and why (also in config.toml)."""
     if cfg.derived:
+        from rich.table import Table
+
         table = Table(title="derived settings (set any of them to override)",
                       show_header=False)
         for key, line in sorted(cfg.derived.items()):
@@ -215,6 +231,8 @@ def _print_derived(cfg: Config) -> None:
 
 
 def _do_clean(cfg: Config, run_dir: Path) -> dict:
+    from rrtcolearn import pipeline
+
     with _progress() as bar:
         task = bar.add_task("clean (Alg. 3): removed", total=None)
         (cleaned, result), cpu = pipeline.timed(
@@ -224,16 +242,28 @@ def _do_clean(cfg: Config, run_dir: Path) -> dict:
             "clean_draws": result.draws, "clean_cpu_s": round(cpu, 3)}
 
 
-def _do_fit(cfg: Config, run_dir: Path) -> tuple[pipeline.FittedModel, dict]:
+def _do_fit(cfg: Config, run_dir: Path) -> tuple[FittedModel, dict]:
+    from rrtcolearn import pipeline
+
     model, cpu = pipeline.timed(pipeline.fit, cfg, run_dir)
     return model, {"fit_cpu_s": round(cpu, 3)}
 
 
-def _write_plan(p, path: Path, state_names: tuple[str, ...] | None = None) -> None:
-    from rrtcolearn.plotting import save_figure, tree_figure
+def _write_plan(p, path: Path, state_names: tuple[str, ...] | None = None,
+                plot: bool = True) -> None:
+    """The plan file, and with ``plot`` the PNG of its tree beside it. Without ``plot`` a PNG
+    left there by an earlier plot is removed: it would show another plan."""
+    from rrtcolearn import pipeline
 
     pipeline.write_plan(p, path)
-    save_figure(tree_figure(p, state_names), path.with_suffix(".png"))
+    png = path.with_suffix(".png")
+    if plot:
+        # matplotlib takes about half a second to import: only a plot pays for it
+        from rrtcolearn.plotting import save_figure, tree_figure
+
+        save_figure(tree_figure(p, state_names), png)
+    else:
+        png.unlink(missing_ok=True)
 
 
 def _plan_summary(p) -> dict:
@@ -263,6 +293,8 @@ def _outcome_shares(outcomes: dict) -> str:
 
 
 def _print_summary(title: str, figures: dict) -> None:
+    from rich.table import Table
+
     table = Table(title=title, show_header=False)
     for k, v in figures.items():
         table.add_row(k, str(v))
@@ -271,6 +303,8 @@ def _print_summary(title: str, figures: dict) -> None:
 
 def _print_version(value: bool) -> None:
     if value:
+        from rrtcolearn import __version__
+
         out_console.print(f"rrtcolearn {__version__}")
         raise typer.Exit(0)
 
@@ -300,6 +334,9 @@ def generate(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
              system: SystemOpt = None, offline_budget: BudgetOpt = None) -> None:
     """Generate a dataset of optimal trajectory segments (Alg. 2); resumable."""
     def body():
+        from rrtcolearn import pipeline
+        from rrtcolearn.parallel import ExecutionSettings
+
         settings = ExecutionSettings.from_options(workers, scheduler, dask_local)
         cfg = _config(config, seed, set_, u_max=u_max, system=system,
                       offline_budget=offline_budget)
@@ -336,6 +373,15 @@ def fit(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
     _guard(body)
 
 
+def _one_blas_thread() -> None:
+    """One BLAS thread, unless the environment says otherwise: a plan multiplies only small
+    matrices, and starting the thread pools of numpy's and scipy's OpenBLAS costs about 0.1 s
+    of a fresh process on two cores. Takes effect when numpy is not yet imported (this
+    module does not import it)."""
+    for var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
+
 def _parse_state(value: str | None, what: str) -> list[float] | None:
     if value is None:
         return None
@@ -367,10 +413,18 @@ def plan(
         "--queries", help="plan every query of this file (CSV with start, goal[, "
         "goal_tolerance, seed] columns, or JSON lines) from one process")] = None,
     workers: WorkersOpt = None,
+    plot: Annotated[bool, typer.Option(
+        "--plot", help="also write a PNG of the tree beside the plan file (imports "
+        "matplotlib: about half a second more)")] = False,
 ) -> None:
-    """Plan one query with a fitted model; writes the plan JSON and a PNG of the tree.
-    With --queries, plans every query of a file into a directory of plan files."""
+    """Plan one query with a fitted model; writes the plan JSON (with --plot also a PNG of
+    the tree). With --queries, plans every query of a file into a directory of plan files."""
+    _one_blas_thread()
+
     def body():
+        from rrtcolearn import pipeline
+        from rrtcolearn.config import Config, add_obstacles, load_config
+
         run_dir = model if model is not None else Path("runs") / _run_name(
             Config() if system_name is None else Config().model_copy(update={
                 "system": Config().system.model_copy(update={"name": system_name})}))
@@ -381,7 +435,8 @@ def plan(
                             ("plan", "max_iterations"): max_iterations,
                             ("system", "u_max"): u_max})
         # validate everything before the model is loaded: the query, the config, the files
-        _, model_cfg, system = pipeline.read_model_info(run_dir)
+        model_info = pipeline.read_model_info(run_dir)
+        _, model_cfg, system = model_info
         if system_name is not None and system_name != model_cfg.system.name:
             raise ConfigError(f"--system {system_name}: the model in {run_dir} was fitted for "
                               f"{model_cfg.system.name!r}")
@@ -393,6 +448,8 @@ def plan(
             "system": model_cfg.system.model_dump(exclude_none=True)}, options=options)
         cfg = add_obstacles(cfg, list(obstacle or []))
         if queries is not None:
+            if plot:
+                raise ConfigError("--plot draws one plan: drop it with --queries")
             _plan_queries(run_dir, cfg, system, queries, out, workers,
                           given=start is not None or goal is not None or seed is not None)
             return
@@ -404,13 +461,13 @@ def plan(
         if out_path.is_dir():
             raise ConfigError(f"--out {out_path} is a directory; give a file name like "
                               "plan.json")
-        fitted = pipeline.load_model(run_dir)
+        fitted = pipeline.load_model(run_dir, model_info=model_info)
         p_cfg = fitted.config.model_copy(update={"plan": cfg.plan, "system": cfg.system})
         plan_seed = seed if seed is not None else fitted.config.seed
         p = pipeline.plan(fitted, start_x, goal_x, cfg.plan.goal_tolerance, plan_seed,
                           config=p_cfg, time_limit=cfg.plan.time_limit,
                           max_iterations=cfg.plan.max_iterations)
-        _write_plan(p, out_path, fitted.system.state_names)
+        _write_plan(p, out_path, fitted.system.state_names, plot=plot)
         _print_summary(f"plan -> {out_path}", _plan_summary(p))
     _guard(body)
 
@@ -418,6 +475,10 @@ def plan(
 def _plan_queries(run_dir: Path, cfg: Config, system, path: Path, out: Path | None,
                   workers: int | None, given: bool) -> None:
     """`plan --queries`: every query of the file, one plan file each, and a summary."""
+    import numpy as np
+
+    from rrtcolearn import pipeline
+    from rrtcolearn.parallel import ExecutionSettings
     from rrtcolearn.queries import plan_query_file, read_queries
 
     if given:
@@ -458,6 +519,10 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         offline_budget: BudgetOpt = None) -> None:
     """The whole pipeline: generate, clean, fit, and plan the configured query."""
     def body():
+        from rrtcolearn import pipeline
+        from rrtcolearn.data.store import write_json
+        from rrtcolearn.parallel import ExecutionSettings
+
         settings = ExecutionSettings.from_options(workers, scheduler, dask_local)
         cfg = _config(config, seed, set_, u_max=u_max, obstacles=obstacle, system=system,
                       offline_budget=offline_budget)
@@ -501,7 +566,9 @@ def experiment(
     10 epochs x 300 runs, for the pendulum; another system's standard query); writes a
     report, runs.csv, OMPL logs and a Planner Arena database."""
     def body():
+        from rrtcolearn import pipeline
         from rrtcolearn.experiment.runner import quick_settings, run_experiment
+        from rrtcolearn.parallel import ExecutionSettings
 
         settings = ExecutionSettings.from_options(workers, scheduler, dask_local)
         cfg = _config(config, seed, set_, system=system)
@@ -545,6 +612,9 @@ def export(
     """Time, state, input and costate samples along a plan's path, re-simulated from its
     edges (the trajectory to execute)."""
     def body():
+        import numpy as np
+
+        from rrtcolearn import pipeline
         from rrtcolearn.data.store import atomic_write_bytes, atomic_write_text
         from rrtcolearn.evaluate import sample_path
 
@@ -587,6 +657,8 @@ def inspect(run_dir: Annotated[Path, typer.Argument(help="run directory")]) -> N
     check that they hold the same dataset.
     """
     def body():
+        from rrtcolearn import pipeline
+
         rows = pipeline.inspect_run(run_dir)
         width = max([len(r["file"]) for r in rows], default=4)
         for r in rows:
@@ -611,6 +683,11 @@ def main() -> None:
     except (Interrupted, KeyboardInterrupt):
         console.print(_INTERRUPTED)
         sys.exit(130)
+    finally:
+        # the process ends here: the interpreter's shutdown would garbage-collect every object
+        # that numba, scipy and the model created (0.2-0.3 s after a plan); frozen, they are
+        # left to the operating system. atexit handlers (worker pools) still run.
+        gc.freeze()
 
 
 if __name__ == "__main__":

@@ -20,20 +20,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from rrtcolearn import __version__, derive
 from rrtcolearn.config import Config, read_toml, to_toml, validate
-from rrtcolearn.data.clean import CleaningResult, clean_data
 from rrtcolearn.data.dataset import Dataset
-from rrtcolearn.data.generate import (
-    GenerationStats,
-    generate_data,
-    generation_tasks,
-    merge,
-    run_generation_task,
-)
 from rrtcolearn.data.store import (
     ShardStore,
     atomic_write_text,
@@ -47,13 +40,20 @@ from rrtcolearn.data.store import (
 )
 from rrtcolearn.errors import ArtefactError, ConfigError, EnvironmentProblem
 from rrtcolearn.learn.models import FUNCTIONS_FORMAT, LearnedFunctions
-from rrtcolearn.parallel import ExecutionSettings, map_tasks
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan
 from rrtcolearn.systems import make
 from rrtcolearn.systems.base import System
+
+if TYPE_CHECKING:
+    from rrtcolearn.data.clean import CleaningResult
+    from rrtcolearn.data.generate import GenerationStats
+    from rrtcolearn.parallel import ExecutionSettings
+
+# the offline steps (data.generate, data.clean, parallel) are imported by the functions that
+# run them: loading a model and planning do without them
 
 DATASET_FILE = "dataset.npz"
 CLEANED_FILE = "cleaned.npz"
@@ -76,6 +76,9 @@ def build_system(config: Config) -> System:
         system = make(config.system.name)
     except ValueError as exc:
         raise ConfigError(f"config: system.name: {exc}") from None
+    # the limits first: a shipped system with configured limits comes from its own build
+    # record, and the overrides below are fields that `with_input_limits` keeps
+    system = _with_configured_limits(config, system)
     g = config.generate
     changes = {}
     for key, n in (("state_low", system.n_states), ("state_high", system.n_states),
@@ -92,7 +95,6 @@ def build_system(config: Config) -> System:
                               f"values, got {scale}")
         changes["input_scale"] = np.asarray(scale, dtype=np.float64)
     system = dataclasses.replace(system, **changes)
-    system = _with_configured_limits(config, system)
     if np.any(system.state_low >= system.state_high):
         raise ConfigError("config: generate.state_low must be below state_high")
     if np.any(system.param_low >= system.param_high):
@@ -143,9 +145,16 @@ def _with_configured_limits(config: Config, system: System) -> System:
         bounds = (None, None) if system.input_limited else None
     if bounds is None:
         return system
-    from rrtcolearn.systems.symbolic import with_input_limits
+    from rrtcolearn.systems.generated import SymbolicSystem
 
     try:
+        if isinstance(system, SymbolicSystem) and system.definition is not None:
+            # a shipped system: the limited one has a build record of its own (no sympy)
+            from rrtcolearn.systems.build_record import build
+
+            return build(system.definition, bounds)
+        from rrtcolearn.systems.symbolic import with_input_limits
+
         return with_input_limits(system, *bounds)
     except ValueError as exc:
         raise ConfigError(f"config: system input limits: {exc}") from None
@@ -197,6 +206,14 @@ def generate(config: Config, run_dir: str | Path,
     ``shards/generate/`` beside a manifest; a rerun with the same configuration loads the
     finished shards and computes only the rest, and a finished dataset is not recomputed.
     """
+    from rrtcolearn.data.generate import (
+        GenerationStats,
+        generation_tasks,
+        merge,
+        run_generation_task,
+    )
+    from rrtcolearn.parallel import map_tasks
+
     run_dir = Path(run_dir)
     system = build_system(config)
     config = resolve(config, system)
@@ -266,6 +283,8 @@ def converge_simulations(config: Config, run_dir: str | Path,
     error on held-out pairs (simulations from their own seed); stop once doubling improved it
     by less than `CONVERGENCE_GAIN`, or when the next stage (estimated at 2.2 times the last)
     would overrun the budget. The last stage's data stay in ``run_dir`` for `generate`."""
+    from rrtcolearn.data.generate import generate_data
+
     run_dir = Path(run_dir)
     system = system if system is not None else build_system(config)
     budget = float(config.generate.offline_budget)
@@ -309,6 +328,8 @@ def clean(config: Config, run_dir: str | Path,
           progress: Callable[[int, int], None] | None = None
           ) -> tuple[Dataset, CleaningResult]:
     """Alg. 3 on the run's ``dataset.npz``; writes ``cleaned.npz``."""
+    from rrtcolearn.data.clean import clean_data
+
     run_dir = Path(run_dir)
     system = build_system(config)
     raw, raw_meta = load_dataset(run_dir / DATASET_FILE, system.name)
@@ -448,16 +469,55 @@ def read_model_info(run_dir: str | Path) -> tuple[dict, Config, System]:
     return info, config, build_system(config)
 
 
-def load_model(run_dir: str | Path) -> FittedModel:
-    """Rebuild a fitted model from a run directory, checking that its files belong together."""
+def load_model(run_dir: str | Path, *, model_info: tuple[dict, Config, System] | None = None
+               ) -> FittedModel:
+    """Rebuild a fitted model from a run directory, checking that its files belong together.
+
+    ``model_info`` is what `read_model_info` returned for this directory, when the caller
+    has read it already (the system is then not built twice)."""
     run_dir = Path(run_dir)
-    info, config, system = read_model_info(run_dir)
+    info, config, system = model_info if model_info is not None else read_model_info(run_dir)
     functions, meta = LearnedFunctions.load(run_dir / FUNCTIONS_FILE)
+    load_kernels(system)
     if meta.get("sha256") != info.get("functions_sha256"):
         raise ArtefactError(f"{run_dir / FUNCTIONS_FILE} is not the file the model was "
                             f"fitted with (checksum differs); rerun `rrtcolearn fit`")
     return FittedModel(system, config, functions, functions.max_duration_,
                        config.generate.max_state_distance)
+
+
+def load_kernels(system: System) -> None:
+    """Load the system's compiled kernels that a plan calls (numba's on-disk cache; compiled
+    and cached when absent), so that the first plan of a process costs what later ones do.
+
+    The first compiled function a process calls also initialises numba's compiler (about
+    0.2 s); this moves that cost, and the cache loads, from the first plan to the model's
+    load. Each kernel runs once, on a state and parameters in the middle of their boxes and
+    for zero or one step, through the function the planner calls it by (`integrate.rollout`,
+    `integrate.propagate`, `integrate.rollout_batch`, or directly with C-contiguous float64
+    arrays), so the very signatures a plan uses are loaded. The LQR goal connection's loop
+    and the node index's scan, which a plan may need later, load on first use (milliseconds
+    once numba is initialised).
+    """
+    from rrtcolearn.integrate import propagate, rollout, rollout_batch
+
+    n = system.n_states
+    x = np.ascontiguousarray((system.state_low + system.state_high) / 2, dtype=np.float64)
+    p = np.ascontiguousarray((system.param_low + system.param_high) / 2, dtype=np.float64)
+    z = np.concatenate([x, np.zeros(n + 1)])
+    inf = np.full(n, np.inf)
+    calls = (
+        lambda: system.costate_from_params_jit(x, p, 1.0, np.empty(n)),
+        lambda: rollout(system, z, 1.0, 0.01, 0),
+        lambda: system.input_max_abs_jit(z),
+        lambda: propagate(system, x, np.zeros(system.n_inputs), 0.01, 0, -inf, inf),
+        lambda: rollout_batch(system, z[None], 1.0, 0.01, 1, 1.0, 1.0, n),
+    )
+    for call in calls:
+        try:
+            call()
+        except Exception:  # loading is what counts, not the outcome of the call
+            pass
 
 
 _FROM_CONFIG = object()

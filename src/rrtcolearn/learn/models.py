@@ -12,7 +12,6 @@ import os
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.ndimage import maximum_filter
 
 from rrtcolearn.data.store import load_arrays, save_arrays
 from rrtcolearn.errors import ArtefactError
@@ -133,7 +132,7 @@ class ValidityClassifier(_KNNBase):
             return
         occupied = np.zeros(tuple(dims), dtype=bool)
         occupied[tuple(np.floor((X - lo) / cell).astype(np.int64).T)] = True
-        self.coverage_ = maximum_filter(occupied, size=3, mode="constant", cval=False)
+        self.coverage_ = _dilate(occupied)
         self.coverage_lo_ = lo
         self.coverage_cell_ = cell
         self._coverage_flat = self.coverage_.ravel()
@@ -353,6 +352,20 @@ class LearnedFunctions:
         if asked:
             self._accepted = 0.9 * self._accepted + 0.1 * rows.size / asked
         return rows, self._answers.cost(np.asarray(X)[rows], dist, idx), idx
+
+
+def _dilate(grid: np.ndarray) -> np.ndarray:
+    """The cells of a boolean grid within one cell (in every coordinate) of a True cell:
+    scipy.ndimage's maximum_filter(size=3, mode="constant", cval=False), as shifted ORs
+    along each axis in turn (a tenth of its time, and no scipy.ndimage import at load)."""
+    out = grid.copy()
+    for axis in range(grid.ndim):
+        before = out.copy()
+        head = tuple(slice(1, None) if a == axis else slice(None) for a in range(grid.ndim))
+        tail = tuple(slice(None, -1) if a == axis else slice(None) for a in range(grid.ndim))
+        out[tail] |= before[head]
+        out[head] |= before[tail]
+    return out
 
 
 def _pad_periodic(X: np.ndarray, periodic, scale: np.ndarray, threshold: float

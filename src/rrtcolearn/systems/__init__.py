@@ -47,6 +47,11 @@ def make(name: str) -> System:
         known = ", ".join(list_systems())
         raise ValueError(f"unknown system {name!r}; known systems: {known}, or give "
                          "module:attribute") from None
+    if factory in _OWN_DEFINITIONS:
+        # rebuilt from its build record when one matches: no sympy (build_record)
+        from rrtcolearn.systems.build_record import build
+
+        return build(factory)
     return factory()
 
 
@@ -107,5 +112,7 @@ register("double_integrator", _double_integrator, {"name": "double-integrator"})
 register("cartpole", _cartpole, {"name": "cartpole-swingup", "plan": _SWING_UP})
 register("acrobot", _acrobot, {"name": "acrobot-swingup", "plan": _SWING_UP})
 register("quadrotor", _quadrotor)
+# the package's own sympy definitions: their builds are recorded (`build_record`)
+_OWN_DEFINITIONS = (make_pendulum, _double_integrator, _cartpole, _acrobot, _quadrotor)
 
 __all__ = ["System", "list_systems", "make", "recommended_config", "register"]

@@ -38,22 +38,18 @@ they pickle by reference), e.g. the pendulum's angle phi (`rrtcolearn.systems.pe
 generated module does not depend on the parametrisation; only the `System`'s fields do.
 
 Cache directory: ``$RRTCOLEARN_CACHE/systems`` if that variable is set, else
-``$XDG_CACHE_HOME/rrtcolearn/systems`` or ``~/.cache/rrtcolearn/systems``.
+``$XDG_CACHE_HOME/rrtcolearn/systems`` or ``~/.cache/rrtcolearn/systems``. Writing, importing
+and wrapping the generated modules needs no sympy and lives in
+`rrtcolearn.systems.generated`, which this module re-exports.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
-import importlib.util
 import os
-import sys
-import tempfile
-import warnings
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, fields
-from pathlib import Path
-from types import ModuleType
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -63,6 +59,12 @@ from sympy.printing.pycode import PythonCodePrinter
 
 from rrtcolearn.integrate import KERNELS
 from rrtcolearn.systems.base import System
+from rrtcolearn.systems.generated import (
+    SymbolicSystem,
+    direction_from_costate,
+    generated_dir,
+    load_generated_module,
+)
 
 __all__ = [
     "CostateParametrisation",
@@ -76,9 +78,6 @@ __all__ = [
     "load_generated_module",
     "with_input_limits",
 ]
-
-_MODULE_PREFIX = "rrtcolearn_sys_"
-
 
 # --------------------------------------------------------------------------- derivation
 
@@ -655,104 +654,7 @@ def generate_source(der: Derivation, line: tuple | None = None) -> str:
     return "\n".join(L)
 
 
-# --------------------------------------------------------------------------- module cache
-
-
-def generated_dir(cache_dir: str | os.PathLike | None = None) -> Path:
-    """Directory of the generated system modules (see the module docstring)."""
-    if cache_dir is not None:
-        root = Path(cache_dir)
-    elif os.environ.get("RRTCOLEARN_CACHE"):
-        root = Path(os.environ["RRTCOLEARN_CACHE"])
-    else:
-        xdg = os.environ.get("XDG_CACHE_HOME")
-        root = (Path(xdg) if xdg else Path.home() / ".cache") / "rrtcolearn"
-    return root / "systems"
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".py")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
-def _ensure_file(directory: Path, name: str, source: str) -> Path:
-    """The file ``directory/name`` holding ``source``; rewritten only when absent or different
-    (rewriting would change its mtime and invalidate numba's cache)."""
-    directory.mkdir(parents=True, exist_ok=True)
-    path = directory / name
-    try:
-        if path.read_text(encoding="utf-8") == source:
-            return path
-    except (OSError, UnicodeDecodeError):
-        pass
-    _write_atomic(path, source)
-    return path
-
-
-def load_generated_module(source: str, cache_dir: str | os.PathLike | None = None
-                          ) -> ModuleType:
-    """Import the generated ``source`` from the cache directory, writing it first if needed.
-
-    A module already imported in this process from the same file is reused. When the cache
-    directory is not writable a per-user directory under the system temp dir is used instead.
-    """
-    digest = hashlib.sha256(source.encode("utf-8")).hexdigest()
-    modname = _MODULE_PREFIX + digest
-    filename = modname + ".py"
-    directory = generated_dir(cache_dir)
-    try:
-        path = _ensure_file(directory, filename, source)
-    except OSError as exc:
-        fallback = Path(tempfile.gettempdir()) / f"rrtcolearn-{os.getuid()}" / "systems"
-        warnings.warn(f"cannot write generated system to {directory} ({exc}); using {fallback}",
-                      RuntimeWarning, stacklevel=2)
-        path = _ensure_file(fallback, filename, source)
-    existing = sys.modules.get(modname)
-    if existing is not None and getattr(existing, "__file__", None) == str(path):
-        return existing
-    spec = importlib.util.spec_from_file_location(modname, path)
-    if spec is None or spec.loader is None:  # pragma: no cover - only for exotic filesystems
-        raise ImportError(f"cannot import generated module {path}")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[modname] = module
-    try:
-        spec.loader.exec_module(module)
-    except BaseException:
-        sys.modules.pop(modname, None)
-        raise
-    return module
-
-
 # --------------------------------------------------------------------------- System
-
-
-# System field -> attribute of the generated module
-_GENERATED = {
-    "rhs": "rhs",
-    "rollout_jit": "rollout_jit",
-    "rollout_batch_jit": "rollout_batch_jit",
-    "input_max_abs_jit": "input_max_abs",
-    "costate_from_params": "costate_from_params",
-    "costate_from_params_jit": "costate_from_params_jit",
-    "optimal_control": "optimal_control",
-    "hamiltonian": "hamiltonian",
-    "dynamics": "dynamics",
-    "params_from_costate": "params_from_costate",
-    "propagate_jit": "propagate_jit",
-    "closed_loop_jit": "closed_loop_jit",
-}
 
 
 @dataclass(frozen=True)
@@ -832,62 +734,6 @@ class CostateParametrisation:
                                      f"symbols only, found "
                                      f"{sorted(map(str, ex.free_symbols - allowed))}")
         return ps, lam0, e, right, inverse
-
-
-def direction_from_costate(x: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """The direction parameters (N, n) of costates on H* = 0: lambda / max_i |lambda_i|, in
-    [-1, 1]^n (the positive scale on the ray is unique, so the direction determines it)."""
-    lam = np.asarray(lam, dtype=np.float64)
-    norm = np.abs(lam).max(axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return lam / norm
-
-
-@dataclass(frozen=True)
-class _GeneratedRef:
-    attr: str
-
-
-def _is_generated(value: Any, modname: str, attr: str) -> bool:
-    """Whether ``value`` is ``attr`` of the generated module ``modname`` (by name, not by
-    identity: the module object in ``sys.modules`` may have been re-imported meanwhile)."""
-    func = getattr(value, "py_func", value)  # numba dispatchers wrap the Python function
-    return (getattr(func, "__module__", None) == modname
-            and getattr(func, "__name__", None) == attr)
-
-
-def _rebuild(cls: type, source: str, state: dict) -> SymbolicSystem:
-    module = load_generated_module(source) if source else None
-    kwargs = {k: getattr(module, v.attr) if isinstance(v, _GeneratedRef) else v
-              for k, v in state.items()}
-    return cls(**kwargs)
-
-
-@dataclass(frozen=True)
-class SymbolicSystem(System):
-    """A `System` built by `build_system`, with its generated source and derivation.
-
-    It pickles as the source plus its plain fields, so spawned or remote (Dask) workers
-    rebuild the module from the source into their own cache; the generated module is not
-    importable by name there.
-    """
-
-    source: str = field(default="", repr=False, compare=False)
-    derivation: Derivation | None = field(default=None, repr=False, compare=False)
-    parametrisation: CostateParametrisation | None = field(default=None, repr=False,
-                                                           compare=False)
-
-    def __reduce__(self):
-        digest = hashlib.sha256(self.source.encode("utf-8")).hexdigest()
-        modname = _MODULE_PREFIX + digest
-        state = {}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            attr = _GENERATED.get(f.name)
-            if self.source and attr is not None and _is_generated(value, modname, attr):
-                value = _GeneratedRef(attr)
-            state[f.name] = value
-        return _rebuild, (type(self), self.source, state)
 
 
 def _generated_fields(der: Derivation, cp: CostateParametrisation | None,
@@ -997,16 +843,17 @@ def with_input_limits(system: System, input_low: Sequence[float] | float | None,
     limits it had; None, None removes them): the optimal control saturates and the costate
     sampler solves the saturated H* = 0 (`limit_derivation`). Only systems built by
     `build_system` can be re-derived; ValueError otherwise."""
-    if not isinstance(system, SymbolicSystem) or system.derivation is None:
+    current, parametrisation = system.symbolic() if isinstance(system, SymbolicSystem) \
+        else (None, None)
+    if current is None:
         raise ValueError(f"system {system.name!r} was not built by build_system: its input "
                          "limits cannot be changed (give them to build_system)")
-    der = limit_derivation(system.derivation, input_low, input_high)
-    if (der.input_low == system.derivation.input_low
-            and der.input_high == system.derivation.input_high):
+    der = limit_derivation(current, input_low, input_high)
+    if der.input_low == current.input_low and der.input_high == current.input_high:
         return system
-    gen = _generated_fields(der, system.parametrisation, cache_dir)
+    gen = _generated_fields(der, parametrisation, cache_dir)
     gen.pop("param_names")
     # the sampling box of the parameters may have been overridden: keep it
     for key in ("param_low", "param_high"):
         gen.pop(key)
-    return dataclasses.replace(system, **gen)
+    return dataclasses.replace(system, **gen, parametrisation=parametrisation)
