@@ -18,11 +18,11 @@ import numpy as np
 from rrtcolearn.config import Config, paper_config
 from rrtcolearn.data.clean import clean_data
 from rrtcolearn.data.generate import generate_data
-from rrtcolearn.pipeline import FittedModel, build_system, fit_functions, plan, resolve
+from rrtcolearn.pipeline import FittedModel, fit_functions, plan, resolve, system_from_config
 
 
 def model_for(cfg: Config, seed: int) -> FittedModel:
-    system = build_system(cfg)
+    system = system_from_config(cfg)
     cfg = resolve(cfg, system)
     g = cfg.generate
     data, _ = generate_data(system, seed, g.n_simulations, time_weight=cfg.system.time_weight,

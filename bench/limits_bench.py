@@ -4,7 +4,7 @@ One row per problem: start (-pi, 0), goal (0, 0), tolerance 0.1, ``--queries`` s
 (default 100) of at most 10 s each (``pipeline.plan``'s time limit, wall time: a machine
 loaded beyond its cores can cut a slow query short; the table names the slowest query's
 CPU). Each learned row has its own offline model, built by the library's pipeline:
-``pipeline.build_system(cfg)`` (``system.u_max``, ``time_weight``, ``limit_mode``), then
+``pipeline.system_from_config(cfg)`` (``system.u_max``, ``time_weight``, ``limit_mode``), then
 `generate_data` (which gets the u_max only in truncate mode, ``cfg.system.truncation_limit``),
 `clean_data`, `pipeline.fit_functions`, and ``pipeline.plan``. The OMPL row is OMPL's
 control-based RRT (`planners.make("ompl-RRT")`: one forked process per seeded query, as the
@@ -89,7 +89,7 @@ def build_model(name: str) -> tuple[pipeline.FittedModel, dict]:
     cfg = row_config(name)
     w = cfg.system.time_weight
     t0 = time.perf_counter()
-    system = pipeline.build_system(cfg)
+    system = pipeline.system_from_config(cfg)
     cfg = pipeline.resolve(cfg, system)  # the library's derived settings (cost bound, ...)
     derive_s = time.perf_counter() - t0
     g = cfg.generate

@@ -172,7 +172,7 @@ def test_limit_configuration_is_validated(overrides, match):
 def test_limits_per_input_must_match_the_system():
     cfg = load_config(overrides=["system.u_max=[1.0, 2.0]"])
     with pytest.raises(ConfigError, match="1 or 1 values"):
-        pipeline.build_system(cfg)
+        pipeline.system_from_config(cfg)
 
 
 # --------------------------------------------------------------------------- two inputs
@@ -263,7 +263,7 @@ def test_saturated_data_do_not_depend_on_workers():
     from rrtcolearn.parallel import ExecutionSettings
 
     cfg = load_config(overrides=["system.u_max=0.5"])
-    system = pipeline.build_system(cfg)
+    system = pipeline.system_from_config(cfg)
     serial, _ = generate_data(system, 3, 600, chunk_size=150, time_weight=1.0)
     spawned, _ = generate_data(system, 3, 600, chunk_size=150, time_weight=1.0,
                                settings=ExecutionSettings("processes", 2))

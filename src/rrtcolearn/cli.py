@@ -576,7 +576,7 @@ def experiment(
             overrides = [f"experiment.{k}={v!r}"
                          for k, v in quick_settings(cfg.system.name).items()]
             cfg = _config(config, seed, overrides + list(set_ or []), system=system)
-        pipeline.build_system(cfg)  # an unknown system is reported before any work
+        pipeline.system_from_config(cfg)  # an unknown system is reported before any work
         exp_dir = out if out is not None else Path("runs") / f"{_run_name(cfg)}-experiment"
         with _progress() as bar:
             task = bar.add_task("offline: generate, clean, fit", total=None)

@@ -70,7 +70,7 @@ def seed_stream(seed: int, step: str) -> np.random.SeedSequence:
     return np.random.SeedSequence(seed, spawn_key=(_STREAMS[step],))
 
 
-def build_system(config: Config) -> System:
+def system_from_config(config: Config) -> System:
     """The configured system, with any sampling-box overrides applied and checked."""
     try:
         system = make(config.system.name)
@@ -119,7 +119,7 @@ def resolve(config: Config, system: System | None = None) -> Config:
     (`rrtcolearn.derive`): Alg. 2's simulations and cost bound, the learner, and the
     planner's steering noise, control samples and target extension. The validity threshold
     needs the data and is derived by `fit`. Settings the user gave are kept."""
-    system = system if system is not None else build_system(config)
+    system = system if system is not None else system_from_config(config)
     g = config.generate
     choices = []
     if g.n_simulations is None and g.offline_budget is None:
@@ -215,7 +215,7 @@ def generate(config: Config, run_dir: str | Path,
     from rrtcolearn.parallel import map_tasks
 
     run_dir = Path(run_dir)
-    system = build_system(config)
+    system = system_from_config(config)
     config = resolve(config, system)
     if config.generate.n_simulations is None:  # an offline budget: a convergence test
         config = converge_simulations(config, run_dir, system)
@@ -286,7 +286,7 @@ def converge_simulations(config: Config, run_dir: str | Path,
     from rrtcolearn.data.generate import generate_data
 
     run_dir = Path(run_dir)
-    system = system if system is not None else build_system(config)
+    system = system if system is not None else system_from_config(config)
     budget = float(config.generate.offline_budget)
     g = config.generate
     start = derive.n_simulations(system).value // 4
@@ -331,7 +331,7 @@ def clean(config: Config, run_dir: str | Path,
     from rrtcolearn.data.clean import clean_data
 
     run_dir = Path(run_dir)
-    system = build_system(config)
+    system = system_from_config(config)
     raw, raw_meta = load_dataset(run_dir / DATASET_FILE, system.name)
     c = config.clean
     cleaned, result = clean_data(raw, d=c.d, k_max=c.k_max, method=c.method,
@@ -430,7 +430,7 @@ def _learn_choices(system: System, data: Dataset, config: Config) -> list[derive
 def fit(config: Config, run_dir: str | Path) -> FittedModel:
     """Fit the learners on ``cleaned.npz``; writes ``model.json`` (parameters, no pickle)."""
     run_dir = Path(run_dir)
-    system = build_system(config)
+    system = system_from_config(config)
     data, meta = load_dataset(run_dir / CLEANED_FILE, system.name)
     config = _with_sections(config, meta, ("system", "generate", "clean"))
     config = resolve(config, system)
@@ -466,7 +466,7 @@ def read_model_info(run_dir: str | Path) -> tuple[dict, Config, System]:
         config = Config.model_validate(info["config"])
     except Exception:
         raise ArtefactError(f"{run_dir / MODEL_FILE} holds an invalid configuration") from None
-    return info, config, build_system(config)
+    return info, config, system_from_config(config)
 
 
 def load_model(run_dir: str | Path, *, model_info: tuple[dict, Config, System] | None = None
@@ -613,7 +613,7 @@ def plan_system(d: dict) -> System:
     if not isinstance(d.get("config"), dict):
         raise ConfigError("the plan file records no configuration: it cannot say which system "
                           "to re-simulate it on")
-    system = build_system(validate(d["config"]))
+    system = system_from_config(validate(d["config"]))
     if system.name != d.get("system"):
         raise ConfigError(f"the plan is for system {d.get('system')!r}, its configuration "
                           f"builds {system.name!r}")

@@ -68,7 +68,7 @@ def problem_system(config: Config, problem: ProblemSpec) -> System:
     if key not in _SYSTEMS:
         if len(_SYSTEMS) > 8:
             _SYSTEMS.pop(next(iter(_SYSTEMS)))
-        _SYSTEMS[key] = pipeline.build_system(cfg)
+        _SYSTEMS[key] = pipeline.system_from_config(cfg)
     return _SYSTEMS[key]
 
 

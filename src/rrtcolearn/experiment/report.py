@@ -65,7 +65,7 @@ def d_grid_search(exp_dir: Path, config: Config) -> list[dict]:
     cfg = epoch_config(config, pr, 0)
     run_dir = exp_dir / "epoch-00" / dataset_name(pr)
     raw, _ = load_dataset(run_dir / pipeline.DATASET_FILE)
-    system = pipeline.build_system(cfg)
+    system = pipeline.system_from_config(cfg)
     held, _ = generate_data(system, cfg.seed + 1, config.experiment.held_out_simulations,
                             time_weight=pr.time_weight, u_max=pr.u_max)
     rows = []
