@@ -128,9 +128,9 @@ def test_a_system_with_configured_limits_has_a_record_of_its_own(cache):
 def test_configured_limits_need_no_sympy_in_a_later_process(cache):
     """`plan` on a model with input limits builds its system from a record too."""
     code = ("from rrtcolearn.config import Config\n"
-            "from rrtcolearn.pipeline import build_system\n"
+            "from rrtcolearn.pipeline import system_from_config\n"
             "c = Config()\n"
-            "s = build_system(c.model_copy(update={'system': c.system.model_copy("
+            "s = system_from_config(c.model_copy(update={'system': c.system.model_copy("
             "update={'u_max': 1.5})}))\n"
             "assert s.input_high.tolist() == [1.5]")
     env = {"RRTCOLEARN_CACHE": str(cache.parent)}
