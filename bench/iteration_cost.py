@@ -25,15 +25,37 @@ from rrtcolearn.planning.rrt import RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.systems import make
 
+# the parts of an iteration timed on their own: a learned expansion, a random-control one,
+# the goal connections of a goal-biased iteration
+_PARTS = {"_learned_iteration": "learned", "_control_edge": "control", "_connect": "connect"}
+
 
 class _Probe(TerminationCondition):
-    """Stops after the last window; records thread CPU at each window's ends."""
+    """Stops after the last window; records thread CPU at each window's ends, and per part of
+    an iteration (`_PARTS`) its calls and CPU within each window."""
 
     def __init__(self, planner: RRTCoLearn, sizes: list[int], window: int):
         super().__init__(time_limit=None)
         self.planner, self.sizes, self.window = planner, sizes, window
         self.marks: dict[int, tuple[int, float]] = {}
         self.result: dict[int, float] = {}
+        self.parts: dict[int, dict[str, list[float]]] = {}
+        self._open: list[int] = []  # the windows being measured
+        for method, part in _PARTS.items():
+            setattr(planner, method, self._timed(getattr(planner, method), part))
+
+    def _timed(self, fn, part: str):
+        def timed(*args, **kwargs):
+            t = time.thread_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                dt = time.thread_time() - t
+                for size in self._open:
+                    calls_cpu = self.parts[size].setdefault(part, [0, 0.0])
+                    calls_cpu[0] += 1
+                    calls_cpu[1] += dt
+        return timed
 
     def __call__(self, iterations: int) -> bool:
         nodes = len(self.planner._indices[0]) if self.planner._indices else 1
@@ -41,10 +63,13 @@ class _Probe(TerminationCondition):
         for size in self.sizes:
             if size not in self.marks and nodes >= size:
                 self.marks[size] = (iterations, t)
+                self.parts[size] = {}
+                self._open.append(size)
             elif size in self.marks and size not in self.result:
                 it0, t0 = self.marks[size]
                 if iterations - it0 >= self.window:
                     self.result[size] = (t - t0) / (iterations - it0)
+                    self._open.remove(size)
         return len(self.result) == len(self.sizes)
 
 
@@ -112,9 +137,21 @@ def _other_system(name: str, sizes: list[int], window: int, overrides: tuple[str
           "ms per iteration at "
           + ", ".join(f"{s} nodes {v}" for s, v in ms.items())
           + f"; largest/smallest {ratio:.2f} (target <= 2)")
-    out = {name: {"ms_per_iteration": ms, "ratio": round(ratio, 3)}}
+    parts = _part_costs(probe)
+    for size, per in parts.items():
+        print(f"  at {size} nodes, per call: " + ", ".join(
+            f"{part} {v['ms']} ms ({v['calls']} calls)" for part, v in per.items()))
+    out = {name: {"ms_per_iteration": ms, "ratio": round(ratio, 3), "parts": parts}}
     print(json.dumps(out))
     return out
+
+
+def _part_costs(probe: _Probe) -> dict:
+    """Per window: each part's calls and mean ms per call (the iteration's kinds, whose mix
+    changes as the tree grows: a tree near the goal makes learned goal iterations)."""
+    return {size: {part: {"calls": c, "ms": round(1e3 * t / c, 4)}
+                   for part, (c, t) in per.items() if c}
+            for size, per in probe.parts.items()}
 
 
 if __name__ == "__main__":

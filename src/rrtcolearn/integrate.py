@@ -47,6 +47,24 @@ def _rk4_step(z, w, dt, k1, k2, k3, k4, tmp, out):
 
 
 @_numba.njit(cache=True)
+def _rk4_plain_step(x, u, dt, k1, k2, k3, k4, tmp, out):
+    # one RK4 step of x' = f(x, u) under the held input u (dynamics_jit) into out
+    n = x.shape[0]
+    dynamics_jit(x, u, k1)
+    for i in range(n):
+        tmp[i] = x[i] + 0.5 * dt * k1[i]
+    dynamics_jit(tmp, u, k2)
+    for i in range(n):
+        tmp[i] = x[i] + 0.5 * dt * k2[i]
+    dynamics_jit(tmp, u, k3)
+    for i in range(n):
+        tmp[i] = x[i] + dt * k3[i]
+    dynamics_jit(tmp, u, k4)
+    for i in range(n):
+        out[i] = x[i] + dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+
+
+@_numba.njit(cache=True)
 def rollout_jit(z0, w, dt, n_steps):
     d = z0.shape[0]
     traj = _np.empty((n_steps + 1, d))
@@ -131,21 +149,11 @@ def propagate_jit(x0, inputs, lengths, dt, low, high):
         u = inputs[j]
         x = x0
         for s in range(lengths[j]):
-            dynamics_jit(x, u, k1)
-            for i in range(n):
-                tmp[i] = x[i] + 0.5 * dt * k1[i]
-            dynamics_jit(tmp, u, k2)
-            for i in range(n):
-                tmp[i] = x[i] + 0.5 * dt * k2[i]
-            dynamics_jit(tmp, u, k3)
-            for i in range(n):
-                tmp[i] = x[i] + dt * k3[i]
-            dynamics_jit(tmp, u, k4)
+            _rk4_plain_step(x, u, dt, k1, k2, k3, k4, tmp, states[r])
             inside = True
             finite = True
             for i in range(n):
-                v = x[i] + dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
-                states[r, i] = v
+                v = states[r, i]
                 inside = inside and low[i] <= v <= high[i]
                 finite = finite and _math.isfinite(v)
             x = states[r]
@@ -201,21 +209,10 @@ def closed_loop_jit(x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps, low,
             for j in range(n):
                 acc -= K[i, j] * e[j]
             u[i] = min(max(acc, u_low[i]), u_high[i])
-        dynamics_jit(x, u, k1)
-        for i in range(n):
-            tmp[i] = x[i] + 0.5 * dt * k1[i]
-        dynamics_jit(tmp, u, k2)
-        for i in range(n):
-            tmp[i] = x[i] + 0.5 * dt * k2[i]
-        dynamics_jit(tmp, u, k3)
-        for i in range(n):
-            tmp[i] = x[i] + dt * k3[i]
-        dynamics_jit(tmp, u, k4)
+        _rk4_plain_step(x, u, dt, k1, k2, k3, k4, tmp, states[s + 1])
         inside = True
         for i in range(n):
-            w = x[i] + dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
-            states[s + 1, i] = w
-            inside = inside and low[i] <= w <= high[i]
+            inside = inside and low[i] <= states[s + 1, i] <= high[i]
         if not inside:
             return states[: s + 1], inputs[:s], 1
         inputs[s] = u
