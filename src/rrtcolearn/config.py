@@ -250,7 +250,7 @@ class PlanConfig(_Section):
         "uniform in the input box held for a random time) for a system with input limits: "
         "true: ordinary targets are expanded by it and goal targets by the learned steering "
         "while a node lies within the data's reach of them; false: the paper's planner "
-        "(learned steering only); none: switched on once the learned steering stalls (100 "
+        "(learned steering only); none: switched on once the learned steering stalls (30 "
         "iterations without a node nearer the goal)")
     goal_lqr: bool | None = Field(
         None, description="in goal-biased iterations, also steer to the goal by LQR about an "
