@@ -24,7 +24,7 @@ import numpy as np
 
 from rrtcolearn import pipeline
 from rrtcolearn.anytime import solve_with_restarts
-from rrtcolearn.config import Config, resolve
+from rrtcolearn.config import Config
 from rrtcolearn.data.clean import clean_data
 from rrtcolearn.data.generate import generate_data
 from rrtcolearn.planners import RRTCoLearnPlanner
@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--budget", type=float, default=1.0, help="CPU seconds per query")
     args = ap.parse_args(argv)
     system = make("pendulum")
-    cfg = resolve(Config(), system)
+    cfg = pipeline.resolve(Config(), system)
     g = cfg.generate
     data, _ = generate_data(system, 1, g.n_simulations, max_cost=cfg.max_cost)
     cleaned, _ = clean_data(data, d=cfg.clean.d, k_max=cfg.clean.k_max, seed=1)
