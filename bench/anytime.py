@@ -27,7 +27,7 @@ from rrtcolearn.anytime import solve_with_restarts
 from rrtcolearn.config import Config
 from rrtcolearn.data.clean import clean_data
 from rrtcolearn.data.generate import generate_data
-from rrtcolearn.planners import RRTCoLearnPlanner
+from rrtcolearn.planning.rrt import RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.systems import make
 
@@ -67,10 +67,11 @@ def main(argv: list[str] | None = None) -> dict:
     out = {}
     for name, u_max in (("unbounded", None), ("u_max 2", 2.0)):
         problem = pipeline.make_problem(system, cfg, START, GOAL, TOLERANCE, u_max=u_max)
+        planner = RRTCoLearn(problem, model.functions, model.planner_settings())
         first, best, first_cpu, solves = [], [], [], []
         for seed in range(args.queries):
-            p = solve_with_restarts(RRTCoLearnPlanner(model), problem,
-                                    TerminationCondition(None, None, args.budget), seed)
+            p = solve_with_restarts(planner.solve, TerminationCondition(None, None, args.budget),
+                                    seed)
             a = p.extra["anytime"]
             if not a["progress"]:
                 continue

@@ -56,12 +56,15 @@ def test_an_iteration_budget_gives_the_same_plan_for_the_same_seed(paper_model):
 
 
 def test_any_planner_and_a_budget_is_required(pendulum):
-    """The baseline wraps any `Planner` (here the random-control RRT); without a limit it
-    would never stop, so it refuses."""
+    """The baseline wraps any planner's solve (here the random-control RRT's); without a
+    limit it would never stop, so it refuses."""
     problem = PlanningProblem.create(pendulum, START, GOAL, 0.3, u_max=2.0)
     peer = planners.make("random-rrt", time_weight=1.0)
-    p = solve_with_restarts(peer, problem, TerminationCondition(None, 6000), seed=1)
+    def solve(termination, seed):
+        return peer.solve(problem, termination, seed)
+
+    p = solve_with_restarts(solve, TerminationCondition(None, 6000), seed=1)
     costs = [c for _, c in p.extra["anytime"]["progress"]]
     assert p.solved and costs and all(b < c for c, b in pairwise(costs))
     with pytest.raises(ValueError, match="budget"):
-        solve_with_restarts(peer, problem, TerminationCondition(None, None), seed=1)
+        solve_with_restarts(solve, TerminationCondition(None, None), seed=1)

@@ -1,8 +1,10 @@
 """The simplest anytime planner: solve again with fresh seeds, keep the cheapest path.
 
-Any `rrtcolearn.planners.Planner` (RRT-CoLearn and every peer) returns its first solution.
-`solve_with_restarts` spends the rest of the budget on further solves of the same problem with
-child seeds of the query's seed and returns the cheapest solved plan, with its best cost
+Every planner (RRT-CoLearn and every peer) returns its first solution. `solve_with_restarts`
+takes one planner's solve of one problem, ``solve(termination, seed) -> Plan`` (`RRTCoLearn`'s
+own ``solve``, or ``lambda t, s: peer.solve(problem, t, s)`` for a `rrtcolearn.planners`
+peer), and spends the rest of the budget on further solves with child seeds of the query's
+seed and returns the cheapest solved plan, with its best cost
 against planning CPU recorded in ``plan.extra["anytime"]`` (OMPL's progress properties, the
 data a best-cost-over-time figure is drawn from). It is the baseline an anytime scheme that
 improves one tree (rewiring, pruning) has to beat at equal CPU.
@@ -16,10 +18,10 @@ depends, as every anytime planner's does, on how fast the machine ran.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
-from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan
 
@@ -41,10 +43,10 @@ def _remaining(termination: TerminationCondition, iterations: int, cpu0: float
     return TerminationCondition(wall, its, cpu)
 
 
-def solve_with_restarts(planner, problem: PlanningProblem, termination: TerminationCondition,
-                        seed: int = 0) -> Plan:
-    """Solve ``problem`` with ``planner`` until ``termination``'s whole budget is spent, each
-    solve after the first with a fresh child seed of ``seed``; the cheapest solved plan (or,
+def solve_with_restarts(solve: Callable[[TerminationCondition, int], Plan],
+                        termination: TerminationCondition, seed: int = 0) -> Plan:
+    """Call ``solve`` until ``termination``'s whole budget is spent, each solve after the
+    first with a fresh child seed of ``seed``; the cheapest solved plan (or,
     with none solved, the first plan), with ``extra["anytime"]``: the scheme, the number of
     solves, and ``progress``, [planning CPU so far, best cost] at each improvement."""
     if termination.time_limit is None and termination.max_iterations is None and \
@@ -58,7 +60,7 @@ def solve_with_restarts(planner, problem: PlanningProblem, termination: Terminat
     runs, iterations, cpu, wall = 0, 0, 0.0, 0.0
     while (left := _remaining(termination, iterations, cpu0)) is not None:
         child = seed if runs == 0 else int(children.spawn(1)[0].generate_state(1)[0])
-        p = planner.solve(problem, left, child)
+        p = solve(left, child)
         runs += 1
         iterations += max(1, p.iterations)
         cpu += p.planning_cpu_s

@@ -591,15 +591,13 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
     problem = make_problem(model.system, cfg, start, goal, goal_tolerance, u_max=u_max,
                            obstacles=obstacles, is_valid=is_valid, goal_fn=goal_fn,
                            goal_sampler=goal_sampler)
+    planner = RRTCoLearn(problem, model.functions, model.planner_settings(config))
     termination = TerminationCondition(time_limit, max_iterations)
     if cfg.plan.anytime:  # the whole budget: restarts, the cheapest path kept
         from rrtcolearn.anytime import solve_with_restarts
-        from rrtcolearn.planners import RRTCoLearnPlanner
 
-        result = solve_with_restarts(RRTCoLearnPlanner(model, config=config), problem,
-                                     termination, seed)
+        result = solve_with_restarts(planner.solve, termination, seed)
     else:
-        planner = RRTCoLearn(problem, model.functions, model.planner_settings(config))
         result = planner.solve(termination, seed)
     result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None
     result.extra["config"] = cfg.model_dump(mode="json")

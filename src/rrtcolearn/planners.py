@@ -26,7 +26,6 @@ from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan
 
 if TYPE_CHECKING:
-    from rrtcolearn.config import Config
     from rrtcolearn.pipeline import FittedModel
 
 
@@ -70,20 +69,17 @@ def make(name: str, **params) -> Planner:
 
 class RRTCoLearnPlanner:
     """RRT-CoLearn (`rrtcolearn.planning.rrt.RRTCoLearn`) with a fitted ``model``, planning
-    with the model's configuration (time weight, derived planner settings), or with the plan
-    section of ``config``."""
+    with the model's configuration (time weight, derived planner settings)."""
 
     name = "rrtcolearn"
 
-    def __init__(self, model: FittedModel | None = None, *, time_weight: float | None = None,
-                 config: Config | None = None):
+    def __init__(self, model: FittedModel | None = None, *, time_weight: float | None = None):
         if model is not None and time_weight is not None and \
                 abs(time_weight - model.config.system.time_weight) > 1e-12:
             raise ValueError(f"the model was fitted with time weight "
                              f"{model.config.system.time_weight:g}, not {time_weight:g}")
         self.model = model
         self.time_weight = time_weight
-        self.config = config
 
     def supports(self, problem: PlanningProblem) -> str | None:
         """None, or why the model cannot plan ``problem`` (another system, or a u_max that
@@ -110,7 +106,7 @@ class RRTCoLearnPlanner:
         if reason is not None:
             raise ValueError(reason)
         plan = RRTCoLearn(problem, self.model.functions,
-                          self.model.planner_settings(self.config)).solve(termination, seed)
+                          self.model.planner_settings()).solve(termination, seed)
         plan.extra["planner"] = self.name
         return plan
 
