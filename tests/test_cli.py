@@ -334,3 +334,13 @@ def test_experiment_on_a_users_system(tmp_path, monkeypatch):
     assert (out / "benchmark.db").is_file() and "random-rrt" in (out / "report.md").read_text()
     result = invoke("experiment", "--system", "rocket", "--out", str(tmp_path / "x"))
     assert_one_line_error(result, contains="unknown system")
+
+
+def test_plan_anytime_writes_its_progress(tiny_run, tmp_path):
+    out = tmp_path / "p.json"
+    result = invoke("plan", "--model", str(tiny_run), "--anytime", "--max-iterations", "1500",
+                    "--out", str(out))
+    assert result.exit_code == 0, result.output
+    a = json.loads(out.read_text())["anytime"]
+    assert a["scheme"] == "restarts" and a["solves"] >= 1
+    assert "anytime_solves" in result.output

@@ -282,7 +282,18 @@ def _plan_summary(p) -> dict:
                if "edges_by" in p.extra else {}),
             **({"switched_on_at_iteration": ", ".join(
                 f"{k} {v}" for k, v in p.extra["connections_switched_on"].items())}
-               if "connections_switched_on" in p.extra else {})}
+               if "connections_switched_on" in p.extra else {}),
+            **(_anytime_summary(p.extra["anytime"]) if "anytime" in p.extra else {})}
+
+
+def _anytime_summary(a: dict) -> dict:
+    """An anytime plan's solves and its cost at the first and the last improvement."""
+    out = {"anytime_solves": a["solves"]}
+    if a["progress"]:
+        (t0, c0), (t1, c1) = a["progress"][0], a["progress"][-1]
+        out["first_solution"] = f"cost {c0:.4g} at {t0:.3g} s CPU"
+        out["best_solution"] = f"cost {c1:.4g} at {t1:.3g} s CPU"
+    return out
 
 
 def _outcome_shares(outcomes: dict) -> str:
@@ -401,6 +412,10 @@ def plan(
     seed: SeedOpt = None,
     time_limit: Annotated[float | None, typer.Option(help="seconds")] = None,
     max_iterations: Annotated[int | None, typer.Option(help="iteration limit")] = None,
+    anytime: Annotated[bool | None, typer.Option(
+        "--anytime/--first-solution", help="spend the whole limit, solving again with fresh "
+        "seeds and keeping the cheapest path (plan.anytime); default: the first solution")
+    ] = None,
     out: Annotated[Path | None, typer.Option(
         "--out", help="plan file (JSON); with --queries a directory (default "
         "<model>/queries)")] = None,
@@ -433,6 +448,7 @@ def plan(
                             ("plan", "goal_tolerance"): goal_tolerance,
                             ("plan", "time_limit"): time_limit,
                             ("plan", "max_iterations"): max_iterations,
+                            ("plan", "anytime"): anytime,
                             ("system", "u_max"): u_max})
         # validate everything before the model is loaded: the query, the config, the files
         model_info = pipeline.read_model_info(run_dir)

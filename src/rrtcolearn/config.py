@@ -208,6 +208,10 @@ class PlanConfig(_Section):
                           "this many decimals (the paper's Section 5.1)")
     time_limit: float | None = Field(10.0, gt=0)
     max_iterations: int | None = Field(None, ge=1)
+    anytime: bool = Field(
+        False, description="spend the whole time (or iteration) limit: after the first "
+        "solution solve again with fresh child seeds and return the cheapest path, its best "
+        "cost against CPU in the plan's extra.anytime.progress (rrtcolearn.anytime)")
     obstacles: list[ObstacleConfig] = Field(default_factory=list)
     extend_distance: float | None = Field(
         None, ge=0, description="move random targets to within this (weighted) distance of "

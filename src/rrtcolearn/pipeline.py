@@ -585,13 +585,20 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
          max_iterations: int | None = None, u_max=_FROM_CONFIG, obstacles=_FROM_CONFIG,
          is_valid=None, goal_fn=None, goal_sampler=None) -> Plan:
     """Plan one query with a fitted model (Alg. 1): the query `make_problem` makes of the
-    arguments (``config`` defaults to the model's), grown into a tree by `RRTCoLearn`."""
+    arguments (``config`` defaults to the model's), grown into a tree by `RRTCoLearn`; with
+    ``plan.anytime`` the whole limit is spent on restarts (`anytime.solve_with_restarts`)."""
     cfg = config or model.config
     problem = make_problem(model.system, cfg, start, goal, goal_tolerance, u_max=u_max,
                            obstacles=obstacles, is_valid=is_valid, goal_fn=goal_fn,
                            goal_sampler=goal_sampler)
     planner = RRTCoLearn(problem, model.functions, model.planner_settings(config))
-    result = planner.solve(TerminationCondition(time_limit, max_iterations), seed)
+    termination = TerminationCondition(time_limit, max_iterations)
+    if cfg.plan.anytime:  # the whole budget: restarts, the cheapest path kept
+        from rrtcolearn.anytime import solve_with_restarts
+
+        result = solve_with_restarts(planner.solve, termination, seed)
+    else:
+        result = planner.solve(termination, seed)
     result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None
     result.extra["config"] = cfg.model_dump(mode="json")
     return result

@@ -1,0 +1,101 @@
+"""Anytime planning on the pendulum swing-up: the restart baseline's best cost after a CPU
+budget against its first solution and against the direct method's collocation optimum.
+
+Problems: start (-pi, 0), goal (0, 0), tolerance 0.1, w = 1, unbounded and u_max = 2 (by
+truncation, on one unbounded model built as `make bench` builds it). Each seeded query runs
+`rrtcolearn.anytime.solve_with_restarts` for ``--budget`` CPU seconds (process CPU); the
+first solution is the plain planner's (same seed). The reference optimum is the collocation
+(`baselines.direct`, CasADi + IPOPT) to the goal itself, free final time up to 15 s, from the
+straight-line guess at several initial durations: the cheapest converged solution. Its goal
+is a point, the planner's a ball of 0.1, so the planner can in principle beat it slightly.
+
+    python bench/anytime.py [--queries 20] [--budget 1.0]
+
+Prints one line per problem and, last, one JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+
+import numpy as np
+
+from rrtcolearn import pipeline
+from rrtcolearn.anytime import solve_with_restarts
+from rrtcolearn.config import Config
+from rrtcolearn.data.clean import clean_data
+from rrtcolearn.data.generate import generate_data
+from rrtcolearn.planning.rrt import RRTCoLearn
+from rrtcolearn.planning.termination import TerminationCondition
+from rrtcolearn.systems import make
+
+START, GOAL, TOLERANCE = np.array([-np.pi, 0.0]), np.array([0.0, 0.0]), 0.1
+INITIAL_DURATIONS = (2.0, 4.0, 6.0, 8.0, 10.0, 12.0)
+
+
+def collocation_optimum(u_max: float | None, w: float = 1.0) -> float | None:
+    """The cheapest converged collocation swing-up over the initial durations (None without
+    CasADi or when none converges)."""
+    from rrtcolearn.baselines.direct import casadi_available, get_solver
+
+    if not casadi_available():
+        return None
+    solver = get_solver()
+    best = None
+    for t0 in INITIAL_DURATIONS:
+        sol = solver.solve(START, GOAL, time_weight=w, u_max=u_max, t_max=15.0,
+                           retry_durations=(t0,))
+        if sol.success and (best is None or sol.cost < best):
+            best = sol.cost
+    return best
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--queries", type=int, default=20)
+    ap.add_argument("--budget", type=float, default=1.0, help="CPU seconds per query")
+    args = ap.parse_args(argv)
+    system = make("pendulum")
+    cfg = pipeline.resolve(Config(), system)
+    g = cfg.generate
+    data, _ = generate_data(system, 1, g.n_simulations, max_cost=cfg.max_cost)
+    cleaned, _ = clean_data(data, d=cfg.clean.d, k_max=cfg.clean.k_max, seed=1)
+    model = pipeline.FittedModel(system, cfg, pipeline.fit_functions(system, cleaned, cfg),
+                                 float(cleaned.duration.max()), g.max_state_distance)
+    out = {}
+    for name, u_max in (("unbounded", None), ("u_max 2", 2.0)):
+        problem = pipeline.make_problem(system, cfg, START, GOAL, TOLERANCE, u_max=u_max)
+        planner = RRTCoLearn(problem, model.functions, model.planner_settings())
+        first, best, first_cpu, solves = [], [], [], []
+        for seed in range(args.queries):
+            p = solve_with_restarts(planner.solve, TerminationCondition(None, None, args.budget),
+                                    seed)
+            a = p.extra["anytime"]
+            if not a["progress"]:
+                continue
+            first.append(a["progress"][0][1])
+            first_cpu.append(a["progress"][0][0])
+            best.append(p.path_cost)
+            solves.append(a["solves"])
+        optimum = collocation_optimum(u_max)
+        row = {"solved": f"{len(best)}/{args.queries}",
+               "first_cost_median": round(statistics.median(first), 4),
+               "best_cost_median": round(statistics.median(best), 4),
+               "best_over_first_median": round(statistics.median(
+                   b / f for b, f in zip(best, first, strict=True)), 4),
+               "first_solution_cpu_s_median": round(statistics.median(first_cpu), 4),
+               "solves_median": statistics.median(solves),
+               "collocation_optimum": None if optimum is None else round(optimum, 4)}
+        if optimum is not None:
+            row["first_over_optimum"] = round(row["first_cost_median"] / optimum, 4)
+            row["best_over_optimum"] = round(row["best_cost_median"] / optimum, 4)
+        out[name] = row
+        print(f"{name}: " + " ".join(f"{k}={v}" for k, v in row.items()), flush=True)
+    print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()

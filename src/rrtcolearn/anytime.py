@@ -1,0 +1,79 @@
+"""The simplest anytime planner: solve again with fresh seeds, keep the cheapest path.
+
+Every planner (RRT-CoLearn and every peer) returns its first solution. `solve_with_restarts`
+takes one planner's solve of one problem, ``solve(termination, seed) -> Plan`` (`RRTCoLearn`'s
+own ``solve``, or ``lambda t, s: peer.solve(problem, t, s)`` for a `rrtcolearn.planners`
+peer), and spends the rest of the budget on further solves with child seeds of the query's
+seed and returns the cheapest solved plan, with its best cost
+against planning CPU recorded in ``plan.extra["anytime"]`` (OMPL's progress properties, the
+data a best-cost-over-time figure is drawn from). It is the baseline an anytime scheme that
+improves one tree (rewiring, pruning) has to beat at equal CPU.
+
+The first solve uses the query's own seed, so the first solution, and the time to it, are a
+plain solve's. With an iteration budget (``TerminationCondition.max_iterations``: the
+iterations of all solves together) the result depends on the seed only; with a time budget it
+depends, as every anytime planner's does, on how fast the machine ran.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from rrtcolearn.planning.termination import TerminationCondition
+from rrtcolearn.planning.tree import Plan
+
+__all__ = ["solve_with_restarts"]
+
+
+def _remaining(termination: TerminationCondition, iterations: int, cpu0: float
+               ) -> TerminationCondition | None:
+    """What is left of ``termination``'s budget after ``iterations`` iterations and the
+    process CPU since ``cpu0``; None when any part of it is spent."""
+    wall = None if termination.time_limit is None else \
+        termination.time_limit - termination.elapsed()
+    its = None if termination.max_iterations is None else \
+        termination.max_iterations - iterations
+    cpu = None if termination.cpu_time_limit is None else \
+        termination.cpu_time_limit - (time.process_time() - cpu0)
+    if any(v is not None and v <= 0 for v in (wall, its, cpu)):
+        return None
+    return TerminationCondition(wall, its, cpu)
+
+
+def solve_with_restarts(solve: Callable[[TerminationCondition, int], Plan],
+                        termination: TerminationCondition, seed: int = 0) -> Plan:
+    """Call ``solve`` until ``termination``'s whole budget is spent, each solve after the
+    first with a fresh child seed of ``seed``; the cheapest solved plan (or,
+    with none solved, the first plan), with ``extra["anytime"]``: the scheme, the number of
+    solves, and ``progress``, [planning CPU so far, best cost] at each improvement."""
+    if termination.time_limit is None and termination.max_iterations is None and \
+            termination.cpu_time_limit is None:
+        raise ValueError("an anytime plan needs a budget: a time, CPU time or iteration limit")
+    termination.start()
+    cpu0 = time.process_time()
+    children = np.random.SeedSequence(seed)
+    best: Plan | None = None
+    progress: list[list[float]] = []
+    runs, iterations, cpu, wall = 0, 0, 0.0, 0.0
+    while (left := _remaining(termination, iterations, cpu0)) is not None:
+        child = seed if runs == 0 else int(children.spawn(1)[0].generate_state(1)[0])
+        p = solve(left, child)
+        runs += 1
+        iterations += max(1, p.iterations)
+        cpu += p.planning_cpu_s
+        wall += p.planning_time_s
+        if p.solved and (best is None or not best.solved or p.path_cost < best.path_cost):
+            best = p
+            progress.append([round(cpu, 6), p.path_cost])
+        elif best is None:
+            best = p
+        if not p.solved and runs == 1:
+            break  # the budget did not even give a first solution
+    best.extra["anytime"] = {"scheme": "restarts", "solves": runs, "progress": progress,
+                             "planning_cpu_s": round(cpu, 6),
+                             "first_solution_cpu_s": progress[0][0] if progress else None}
+    best.planning_cpu_s, best.planning_time_s = cpu, wall
+    return best

@@ -1,0 +1,70 @@
+"""The restart anytime baseline (`rrtcolearn.anytime`): the whole budget spent on solves with
+fresh seeds, the cheapest path kept, its progress recorded."""
+
+from __future__ import annotations
+
+from itertools import pairwise
+
+import numpy as np
+import pytest
+
+from rrtcolearn import pipeline, planners
+from rrtcolearn.anytime import solve_with_restarts
+from rrtcolearn.config import PlanConfig
+from rrtcolearn.evaluate import resimulate
+from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.termination import TerminationCondition
+
+START, GOAL = [-np.pi, 0.0], [0.0, 0.0]
+
+
+def _anytime(model, seed, iterations=2000):
+    cfg = model.config.model_copy(update={"plan": model.config.plan.model_copy(
+        update={"anytime": True})})
+    return pipeline.plan(model, START, GOAL, 0.1, seed, config=cfg, time_limit=None,
+                         max_iterations=iterations)
+
+
+def test_off_by_default():
+    assert PlanConfig().anytime is False
+
+
+def test_keeps_the_first_solution_and_never_gets_worse(paper_model):
+    first = pipeline.plan(paper_model, START, GOAL, 0.1, 3, time_limit=None,
+                          max_iterations=2000)
+    p = _anytime(paper_model, 3)
+    a = p.extra["anytime"]
+    assert first.solved and p.solved and a["solves"] > 1
+    costs = [c for _, c in a["progress"]]
+    cpus = [t for t, _ in a["progress"]]
+    assert costs[0] == pytest.approx(first.path_cost, rel=1e-12)  # the plain solve's
+    assert all(b < c for c, b in pairwise(costs))  # only improvements
+    assert all(b >= c for c, b in pairwise(cpus))
+    assert p.path_cost == pytest.approx(costs[-1], rel=1e-12)
+    assert p.path_cost <= first.path_cost
+    r = resimulate(paper_model.system, p)  # the kept plan is what it claims
+    assert r["max_gap"] < 1e-9 and r["max_cost_gap"] < 1e-9
+    assert r["path_cost"] == pytest.approx(p.path_cost, rel=1e-9)
+
+
+def test_an_iteration_budget_gives_the_same_plan_for_the_same_seed(paper_model):
+    a, b = (_anytime(paper_model, 5, iterations=1500) for _ in range(2))
+    assert a.to_dict()["path"] == b.to_dict()["path"]
+    assert a.extra["anytime"]["solves"] == b.extra["anytime"]["solves"]
+    assert [c for _, c in a.extra["anytime"]["progress"]] == \
+        [c for _, c in b.extra["anytime"]["progress"]]
+
+
+def test_any_planner_and_a_budget_is_required(pendulum):
+    """The baseline wraps any planner's solve (here the random-control RRT's); without a
+    limit it would never stop, so it refuses."""
+    problem = PlanningProblem.create(pendulum, START, GOAL, 0.3, u_max=2.0)
+    peer = planners.make("random-rrt", time_weight=1.0)
+    def solve(termination, seed):
+        return peer.solve(problem, termination, seed)
+
+    p = solve_with_restarts(solve, TerminationCondition(None, 6000), seed=1)
+    costs = [c for _, c in p.extra["anytime"]["progress"]]
+    assert p.solved and costs and all(b < c for c, b in pairwise(costs))
+    with pytest.raises(ValueError, match="budget"):
+        solve_with_restarts(solve, TerminationCondition(None, None), seed=1)
