@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup lint clean-venv
+.PHONY: run test bench bench-anytime bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup lint clean-venv
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -34,6 +34,10 @@ bench-external: $(STAMP)
 # the pendulum with derived settings beside the paper's, side by side (about 3 minutes)
 bench-derived: $(STAMP)
 	$(BIN)/python bench/derived_ab.py
+
+# the restart anytime baseline on the pendulum against the collocation optimum (about 2 minutes)
+bench-anytime: $(STAMP)
+	$(BIN)/python bench/anytime.py
 
 # planner iteration cost at 100, 1 000 and 10 000 tree nodes (about a minute)
 bench-iterations: $(STAMP)
