@@ -9,7 +9,12 @@ first solution is the plain planner's (same seed). The reference optimum is the 
 straight-line guess at several initial durations: the cheapest converged solution. Its goal
 is a point, the planner's a ball of 0.1, so the planner can in principle beat it slightly.
 
-    python bench/anytime.py [--queries 20] [--budget 1.0]
+Beside it, OMPL's RRT's first solution on the same problem (where OMPL is installed and the
+problem has an input box: u_max = 2), its path priced with w + u^2/2 by re-simulation
+(`evaluate.replay`), 10 s per query. The best cost against planning CPU (median and
+quartiles over the queries, the optimum as a line) is drawn into ``--figure``.
+
+    python bench/anytime.py [--queries 20] [--budget 1.0] [--figure runs/anytime.png]
 
 Prints one line per problem and, last, one JSON line.
 """
@@ -19,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+from pathlib import Path
 
 import numpy as np
 
@@ -52,11 +58,65 @@ def collocation_optimum(u_max: float | None, w: float = 1.0) -> float | None:
     return best
 
 
+def ompl_first_costs(problem, queries: int) -> list[float] | None:
+    """OMPL RRT's first-solution costs (re-simulated) on ``problem``, seeds 0..queries-1;
+    None without OMPL or without an input box."""
+    from rrtcolearn import planners
+    from rrtcolearn.evaluate import replay
+
+    peer = planners.make("ompl-RRT", time_weight=1.0)
+    if peer.supports(problem) is not None:
+        return None
+    costs = []
+    for seed in range(queries):
+        p = peer.solve(problem, TerminationCondition(10.0), seed)
+        if p.solved:
+            costs.append(replay(problem, p)["path_cost"])
+    return costs
+
+
+def best_cost_curves(progress: list[list[list[float]]], grid: np.ndarray) -> np.ndarray:
+    """(queries, len(grid)) best cost at each CPU time of ``grid`` (NaN before a query's
+    first solution), from each query's [CPU, best cost] improvements."""
+    out = np.full((len(progress), len(grid)), np.nan)
+    for q, steps in enumerate(progress):
+        for t, c in steps:
+            out[q, grid >= t] = c
+    return out
+
+
+def draw(curves: dict, grid: np.ndarray, optima: dict, path: str) -> None:
+    """Median and quartiles of the best cost against CPU per problem, its optimum dashed."""
+    from rrtcolearn.plotting import plt, save_figure
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for name, c in curves.items():
+        # from when every query has its first solution: before, a median over the queries
+        # solved so far would rise as slower (and costlier) first solutions join
+        c = c[:, ~np.isnan(c).any(axis=0)]
+        g = grid[~np.isnan(curves[name]).any(axis=0)]
+        q1, med, q3 = np.percentile(c, [25, 50, 75], axis=0)
+        (line,) = ax.plot(g, med, label=f"{name}: median")
+        ax.fill_between(g, q1, q3, alpha=0.25, color=line.get_color())
+        if optima.get(name) is not None:
+            ax.axhline(optima[name], color=line.get_color(), ls="--", lw=1,
+                       label=f"{name}: collocation optimum")
+    ax.set_xlabel("planning CPU (s)")
+    ax.set_ylabel("best path cost (w T + integral of u^2/2)")
+    ax.set_title("Restart anytime baseline, pendulum swing-up (quartiles shaded;\n"
+                 "from when every query has its first solution)")
+    ax.legend()
+    save_figure(fig, path)
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--queries", type=int, default=20)
     ap.add_argument("--budget", type=float, default=1.0, help="CPU seconds per query")
+    ap.add_argument("--figure", default="runs/anytime.png", help="best cost against CPU")
     args = ap.parse_args(argv)
+    grid = np.linspace(0.0, args.budget, 201)
+    curves, optima = {}, {}
     system = make("pendulum")
     cfg = pipeline.resolve(Config(), system)
     g = cfg.generate
@@ -68,7 +128,7 @@ def main(argv: list[str] | None = None) -> dict:
     for name, u_max in (("unbounded", None), ("u_max 2", 2.0)):
         problem = pipeline.make_problem(system, cfg, START, GOAL, TOLERANCE, u_max=u_max)
         planner = RRTCoLearn(problem, model.functions, model.planner_settings())
-        first, best, first_cpu, solves = [], [], [], []
+        first, best, first_cpu, solves, progress = [], [], [], [], []
         for seed in range(args.queries):
             p = solve_with_restarts(planner.solve, TerminationCondition(None, None, args.budget),
                                     seed)
@@ -79,7 +139,9 @@ def main(argv: list[str] | None = None) -> dict:
             first_cpu.append(a["progress"][0][0])
             best.append(p.path_cost)
             solves.append(a["solves"])
-        optimum = collocation_optimum(u_max)
+            progress.append(a["progress"])
+        curves[name] = best_cost_curves(progress, grid)
+        optimum = optima[name] = collocation_optimum(u_max)
         row = {"solved": f"{len(best)}/{args.queries}",
                "first_cost_median": round(statistics.median(first), 4),
                "best_cost_median": round(statistics.median(best), 4),
@@ -91,8 +153,22 @@ def main(argv: list[str] | None = None) -> dict:
         if optimum is not None:
             row["first_over_optimum"] = round(row["first_cost_median"] / optimum, 4)
             row["best_over_optimum"] = round(row["best_cost_median"] / optimum, 4)
+        ompl = ompl_first_costs(problem, args.queries)
+        if ompl:
+            row["ompl_rrt_solved"] = f"{len(ompl)}/{args.queries}"
+            row["ompl_rrt_first_cost_median"] = round(statistics.median(ompl), 4)
+            row["best_over_ompl_rrt_first"] = round(
+                row["best_cost_median"] / row["ompl_rrt_first_cost_median"], 4)
+            row["first_over_ompl_rrt_first"] = round(
+                row["first_cost_median"] / row["ompl_rrt_first_cost_median"], 4)
+        else:
+            row["ompl_rrt"] = "not run: " + ("OMPL needs an input box" if ompl is None
+                                              else "no solution")
         out[name] = row
         print(f"{name}: " + " ".join(f"{k}={v}" for k, v in row.items()), flush=True)
+    Path(args.figure).parent.mkdir(parents=True, exist_ok=True)
+    draw(curves, grid, optima, args.figure)
+    print(f"figure: {args.figure}")
     print(json.dumps(out))
     return out
 
