@@ -171,10 +171,9 @@ class GoalLQR:
         args = (np.ascontiguousarray(x0, dtype=np.float64), self.x_e, self.u_e, self.K,
                 self.P, self.u_low, self.u_high, wrap, float(self.dt), int(max_steps),
                 low, high)
-        loop = sys.closed_loop_jit if sys.closed_loop_jit is not None else _closed_loop
-        states, inputs, how = loop(*args) if loop is not _closed_loop else \
-            _closed_loop(sys, *args)
-        hits = np.flatnonzero(goal_mask(states[1:])) if len(states) > 1 else hits_none
+        states, inputs, how = sys.closed_loop_jit(*args) if sys.closed_loop_jit is not None \
+            else _closed_loop(sys, *args)
+        hits = np.flatnonzero(goal_mask(states[1:])) if len(states) > 1 else _NO_HITS
         end = int(hits[0]) + 1 if hits.size else len(inputs)
         if validity and end and not validity(states[1 : end + 1]).all():
             return LQRTry(states[: end + 1], inputs[:end], "obstacle")
@@ -183,7 +182,7 @@ class GoalLQR:
         return LQRTry(states, inputs, ("timeout", "box", "basin")[how])
 
 
-hits_none = np.empty(0, np.int64)
+_NO_HITS = np.empty(0, np.int64)
 
 
 def _closed_loop(system, x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps, low, high):

@@ -205,6 +205,10 @@ class Edge(NamedTuple):
     end_distance: float | None = None
 
 
+# `integrate.propagate_draws`' stop codes as rejection reasons
+_STOP_REASONS = np.array([None, "state_box", "nonfinite"], dtype=object)
+
+
 class _Rolled(NamedTuple):
     """A learned edge integrated and checked up to its goal test (`RRTCoLearn._roll_edge`):
     its trajectory (steps + 1, 2n + 1), the states after the parent's (steps, n), where the
@@ -794,7 +798,7 @@ class RRTCoLearn:
         # one compiled call for every draw; a draw's state outside the constraints (or not
         # finite) is its last, and is dropped
         flat, counts, stops = propagate_draws(sys, x0, inputs, lengths, s.dt, *self._box)
-        reasons = np.array([None, "state_box", "nonfinite"], dtype=object)[stops]
+        reasons = _STOP_REASONS[stops]  # a copy: "obstacle" may replace one below
         if stops.any():
             keep = np.ones(len(flat), bool)
             keep[np.cumsum(counts)[stops > 0] - 1] = False
