@@ -44,11 +44,15 @@ def _remaining(termination: TerminationCondition, iterations: int, cpu0: float
 
 
 def solve_with_restarts(solve: Callable[[TerminationCondition, int], Plan],
-                        termination: TerminationCondition, seed: int = 0) -> Plan:
+                        termination: TerminationCondition, seed: int = 0,
+                        improve: Callable[[Plan, Callable[[], bool]], Plan] | None = None
+                        ) -> Plan:
     """Call ``solve`` until ``termination``'s whole budget is spent, each solve after the
-    first with a fresh child seed of ``seed``; the cheapest solved plan (or,
-    with none solved, the first plan), with ``extra["anytime"]``: the scheme, the number of
-    solves, and ``progress``, [planning CPU so far, best cost] at each improvement."""
+    first with a fresh child seed of ``seed``, each solved plan then passed through
+    ``improve(plan, stop)`` if given (e.g. `planning.improve.shortcut`; ``stop()`` is true once
+    the budget is spent); the cheapest solved plan (or, with none solved, the first plan),
+    with ``extra["anytime"]``: the scheme, the number of solves, and ``progress``, [planning
+    CPU so far, best cost] at each improvement."""
     if termination.time_limit is None and termination.max_iterations is None and \
             termination.cpu_time_limit is None:
         raise ValueError("an anytime plan needs a budget: a time, CPU time or iteration limit")
@@ -72,8 +76,21 @@ def solve_with_restarts(solve: Callable[[TerminationCondition, int], Plan],
             best = p
         if not p.solved and runs == 1:
             break  # the budget did not even give a first solution
-    best.extra["anytime"] = {"scheme": "restarts", "solves": runs, "progress": progress,
+        if p.solved and improve is not None:
+            t0, c0 = time.perf_counter(), time.thread_time()
+            p = improve(p, lambda its=iterations: _remaining(termination, its, cpu0) is None)
+            cpu += time.thread_time() - c0
+            wall += time.perf_counter() - t0
+            if p.path_cost < best.path_cost:
+                best = p
+                progress.append([round(cpu, 6), p.path_cost])
+    # a function's name, or a functools.partial's function's
+    name = getattr(improve, "__name__", None) or getattr(getattr(improve, "func", None),
+                                                         "__name__", "improve")
+    scheme = "restarts" if improve is None else f"restarts+{name}"
+    best.extra["anytime"] = {"scheme": scheme, "solves": runs, "progress": progress,
                              "planning_cpu_s": round(cpu, 6),
-                             "first_solution_cpu_s": progress[0][0] if progress else None}
+                             "first_solution_cpu_s": progress[0][0] if progress else None,
+                             "first_solution_cost": progress[0][1] if progress else None}
     best.planning_cpu_s, best.planning_time_s = cpu, wall
     return best

@@ -586,17 +586,22 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
          is_valid=None, goal_fn=None, goal_sampler=None) -> Plan:
     """Plan one query with a fitted model (Alg. 1): the query `make_problem` makes of the
     arguments (``config`` defaults to the model's), grown into a tree by `RRTCoLearn`; with
-    ``plan.anytime`` the whole limit is spent on restarts (`anytime.solve_with_restarts`)."""
+    ``plan.anytime`` the whole limit is spent on restarts whose paths are shortcut to the goal
+    (`anytime.solve_with_restarts`, `planning.improve.shortcut`)."""
     cfg = config or model.config
     problem = make_problem(model.system, cfg, start, goal, goal_tolerance, u_max=u_max,
                            obstacles=obstacles, is_valid=is_valid, goal_fn=goal_fn,
                            goal_sampler=goal_sampler)
     planner = RRTCoLearn(problem, model.functions, model.planner_settings(config))
     termination = TerminationCondition(time_limit, max_iterations)
-    if cfg.plan.anytime:  # the whole budget: restarts, the cheapest path kept
-        from rrtcolearn.anytime import solve_with_restarts
+    if cfg.plan.anytime:  # the whole budget: restarts, each path shortcut, the cheapest kept
+        from functools import partial
 
-        result = solve_with_restarts(planner.solve, termination, seed)
+        from rrtcolearn.anytime import solve_with_restarts
+        from rrtcolearn.planning.improve import shortcut
+
+        result = solve_with_restarts(planner.solve, termination, seed,
+                                     improve=partial(shortcut, planner))
     else:
         result = planner.solve(termination, seed)
     result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None

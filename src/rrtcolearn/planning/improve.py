@@ -1,0 +1,115 @@
+"""Improve a solved plan in its own tree: goal shortcuts by shooting (choose-parent for the goal).
+
+A first solution is a chain of extremals (and, with an input box, constant-input edges) with
+a jump in the costate at every node: each edge is locally optimal, the chain is not. The
+optimum of a free-final-time problem is a single extremal from the start to the goal region
+(Pontryagin), so the path gets cheaper as its tail is replaced by one extremal from ever
+earlier nodes.
+
+`shortcut` walks the path backwards from its second-last node. From node i it shoots one
+extremal to the goal region (`shooting.shoot`) from two guesses: the path's own edge out of i
+(its steering parameters, with the duration of the rest of the path: the chain after i is
+what the extremal has to straighten) and U's prediction for (x_i, goal). An edge that reaches
+the goal region, passes every check of a planner edge (state box, obstacles, input limit) and
+makes the cost to come of x_i plus its cost less than the best path's is added to the tree as
+a new leaf below node i, and becomes the best path; the walk goes on from the node before i
+on that path. Nothing in the tree is moved or deleted, so the tree stays a tree: every node
+is reached from the root by edges that re-simulate, and its cost to come is the sum of its
+path's edge costs.
+
+The longest extremal worth shooting from node i is bounded by the cost: one that ends the
+path cheaper lasts at most (best - cost to come of x_i) / w.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from rrtcolearn.planning.shooting import shoot
+from rrtcolearn.planning.tree import Plan, PlannerData
+
+if TYPE_CHECKING:
+    from rrtcolearn.planning.rrt import RRTCoLearn
+
+__all__ = ["shortcut"]
+
+
+def _costs_to_come(tree: PlannerData, path: list[int]) -> np.ndarray:
+    """Cost to come of each node of ``path`` (path order)."""
+    return np.concatenate([[0.0], np.cumsum(tree.costs[path[1:]])])
+
+
+def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = None
+             ) -> Plan:
+    """``plan`` (solved, from ``planner``'s last `solve`) with its tail replaced by single
+    extremals to the goal wherever that is cheaper; the same plan when nothing is.
+
+    ``planner`` is the `RRTCoLearn` that made the plan (its problem, settings, learned U and
+    edge checks are used). Stops early once ``stop()`` is true (checked before each node).
+    ``extra["shortcuts"]`` records the edges added and the shots tried.
+    """
+    if not plan.solved or len(plan.path_nodes) < 3:
+        return plan
+    prob, sys, s = planner.problem, planner.problem.system, planner.settings
+    if sys.params_from_costate is None:
+        return plan
+    n = sys.n_states
+    w = s.time_weight
+    tree = plan.tree
+    lam, z0 = np.empty(n), np.empty(2 * n + 1)
+    path = list(plan.path_nodes)
+    best = float(_costs_to_come(tree, path)[-1])
+    added, shots = 0, 0
+    pos = len(path) - 2  # the last edge's parent: U's guess may beat the edge the tree had
+    while pos >= 0:
+        if stop is not None and stop():
+            break
+        come = _costs_to_come(tree, path)
+        node = path[pos]
+        budget = (best - come[pos]) / w if w > 0 else np.inf
+        if budget <= s.dt:
+            pos -= 1
+            continue
+        x0 = tree.states[node]
+        guesses = []
+        child = path[pos + 1]
+        if not np.isnan(tree.costates[child]).any():
+            rest = float(np.sum(tree.durations[path[pos + 1:]]))
+            guesses.append((tree.params[child], min(rest, budget)))
+        if planner.model is not None:
+            sh = sys.wrap_shift(x0[None])[0]
+            offset = prob.goal_offset(x0[None])[0]
+            query = np.concatenate([x0 + sh, x0 - offset + sh])[None]
+            u = planner.model.query(query)[1][0]
+            guesses.append((u[:-1], min(max(u[-1], s.dt), budget)))
+        found = None
+        for params, duration in guesses:
+            shots += 1
+            res = shoot(sys, x0, params, duration, prob.goal_residual, time_weight=w,
+                        dt=s.dt, max_duration=max(budget, s.dt),
+                        tolerance=0.25 * prob.goal_tolerance, max_iterations=20)
+            if res is None:
+                continue
+            edge = planner._goal_edge(x0, np.append(res.params, res.steps * s.dt), lam, z0)
+            if edge is not None and come[pos] + edge.cost < best - 1e-9 and \
+                    (found is None or edge.cost < found.cost):
+                found = edge
+        if found is not None:
+            leaf = planner._add_edge(tree, node, found)
+            path = [*path[: pos + 1], leaf]
+            best = float(come[pos] + found.cost)
+            added += 1
+        pos -= 1
+    if not added:
+        plan.extra["shortcuts"] = {"added": 0, "shots": shots}
+        return plan
+    region = prob.goal_fn is not None or prob.goal_weights is not None
+    out = replace(plan, path_nodes=path,
+                  end_goal_distance=float(prob.goal_distance(tree.states[path[-1]])[0])
+                  if region else None,
+                  extra={**plan.extra, "shortcuts": {"added": added, "shots": shots}})
+    return out
