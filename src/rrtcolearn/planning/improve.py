@@ -55,15 +55,16 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
     if not plan.solved or len(plan.path_nodes) < 3:
         return plan
     prob, sys, s = planner.problem, planner.problem.system, planner.settings
-    if sys.params_from_costate is None:
-        return plan
     n = sys.n_states
     w = s.time_weight
     tree = plan.tree
     lam, z0 = np.empty(n), np.empty(2 * n + 1)
+    # the LQR connection's loop, where the settings allow it and the goal has an equilibrium
+    lqr = planner._build_lqr().lqr if s.goal_lqr is not False else None
+    can_shoot = sys.params_from_costate is not None
     path = list(plan.path_nodes)
     best = float(_costs_to_come(tree, path)[-1])
-    added, shots = 0, 0
+    added, shots, loops = 0, 0, 0
     pos = len(path) - 2  # the last edge's parent: U's guess may beat the edge the tree had
     while pos >= 0:
         if stop is not None and stop():
@@ -75,41 +76,51 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
             pos -= 1
             continue
         x0 = tree.states[node]
+        tails = []  # chains of edges from x0 into the goal region
         guesses = []
         child = path[pos + 1]
-        if not np.isnan(tree.costates[child]).any():
+        if can_shoot and not np.isnan(tree.costates[child]).any():
             rest = float(np.sum(tree.durations[path[pos + 1:]]))
             guesses.append((tree.params[child], min(rest, budget)))
-        if planner.model is not None:
+        if can_shoot and planner.model is not None:
+            # U's guess where J says the edge may be cheaper (V's verdict is not asked: far
+            # from the data U's guess still converges often enough to pay)
             sh = sys.wrap_shift(x0[None])[0]
             offset = prob.goal_offset(x0[None])[0]
             query = np.concatenate([x0 + sh, x0 - offset + sh])[None]
-            u = planner.model.query(query)[1][0]
-            guesses.append((u[:-1], min(max(u[-1], s.dt), budget)))
-        found = None
+            j, u, _ = (a[0] for a in planner.model.query(query))
+            if come[pos] + j < best:
+                guesses.append((u[:-1], min(max(u[-1], s.dt), budget)))
         for params, duration in guesses:
             shots += 1
             res = shoot(sys, x0, params, duration, prob.goal_residual, time_weight=w,
                         dt=s.dt, max_duration=max(budget, s.dt),
                         tolerance=0.25 * prob.goal_tolerance, max_iterations=20)
-            if res is None:
-                continue
-            edge = planner._goal_edge(x0, np.append(res.params, res.steps * s.dt), lam, z0)
-            if edge is not None and come[pos] + edge.cost < best - 1e-9 and \
-                    (found is None or edge.cost < found.cost):
-                found = edge
-        if found is not None:
-            leaf = planner._add_edge(tree, node, found)
-            path = [*path[: pos + 1], leaf]
-            best = float(come[pos] + found.cost)
-            added += 1
+            if res is not None:
+                edge = planner._goal_edge(x0, np.append(res.params, res.steps * s.dt), lam,
+                                          z0)
+                if edge is not None:
+                    tails.append([edge])
+        if lqr is not None:
+            loops += 1
+            chain, _ = planner._lqr_chain(lqr, x0)
+            if chain is not None:
+                tails.append(chain)
+        costs = [sum(e.cost for e in t) for t in tails]
+        if costs and come[pos] + min(costs) < best - 1e-9:
+            parent = node
+            path = path[: pos + 1]
+            for edge in tails[int(np.argmin(costs))]:
+                parent = planner._add_edge(tree, parent, edge)
+                path.append(parent)
+                added += 1
+            best = float(come[pos] + min(costs))
         pos -= 1
+    record = {"added": added, "shots": shots, "lqr_loops": loops}
     if not added:
-        plan.extra["shortcuts"] = {"added": 0, "shots": shots}
+        plan.extra["shortcuts"] = record
         return plan
     region = prob.goal_fn is not None or prob.goal_weights is not None
-    out = replace(plan, path_nodes=path,
-                  end_goal_distance=float(prob.goal_distance(tree.states[path[-1]])[0])
-                  if region else None,
-                  extra={**plan.extra, "shortcuts": {"added": added, "shots": shots}})
-    return out
+    return replace(plan, path_nodes=path,
+                   end_goal_distance=float(prob.goal_distance(tree.states[path[-1]])[0])
+                   if region else None, extra={**plan.extra, "shortcuts": record})

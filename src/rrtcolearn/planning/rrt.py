@@ -990,7 +990,6 @@ class RRTCoLearn:
         within ``funnel_duration``, leaves the constraints, meets an obstacle or leaves the
         loop's basin (`GoalLQR.run`). Once a loop runs out of time, only nodes with a lower
         value than its start are tried."""
-        prob, s = self.problem, self.settings
         lqr = search.lqr
         m = tree.n_nodes
         search.grow(m)
@@ -1003,12 +1002,20 @@ class RRTCoLearn:
             return None
         search.tried[node] = True
         search.tries += 1
-        out = lqr.run(tree.states[node], max(1, round(s.funnel_duration / s.dt)), self._box,
-                      self._goal_mask, prob.validity if prob.validity else None)
-        if out.end == "timeout":
+        chain, end = self._lqr_chain(lqr, tree.states[node])
+        if end == "timeout":
             search.ceiling = float(value[node])
+        return None if chain is None else (node, chain)
+
+    def _lqr_chain(self, lqr: GoalLQR, x0: np.ndarray) -> tuple[list[Edge] | None, str]:
+        """The LQR closed loop from ``x0`` as a chain of constant-input edges (consecutive
+        equal inputs merged into one) if it reaches the goal region within
+        ``funnel_duration``, and how the loop ended (`GoalLQR.run`)."""
+        prob, s = self.problem, self.settings
+        out = lqr.run(x0, max(1, round(s.funnel_duration / s.dt)), self._box,
+                      self._goal_mask, prob.validity if prob.validity else None)
         if not out.reached:
-            return None
+            return None, out.end
         us = out.inputs
         breaks = [0, *np.flatnonzero(np.any(us[1:] != us[:-1], axis=1)) + 1, len(us)]
         chain = []
@@ -1020,7 +1027,7 @@ class RRTCoLearn:
                               float(np.abs(u).max()), last, control=u,
                               end_distance=float(prob.goal_distance(out.states[b])[0])
                               if last else None))
-        return node, chain
+        return chain, out.end
 
     def _expand(self, rng: np.random.Generator, run: _Run, target: np.ndarray,
                 to_goal: bool) -> None:
