@@ -62,6 +62,7 @@ def solve_with_restarts(solve: Callable[[TerminationCondition, int], Plan],
     best: Plan | None = None
     progress: list[list[float]] = []
     runs, iterations, cpu, wall = 0, 0, 0.0, 0.0
+    tries = gains = 0  # improvements run, and those that made their path cheaper
     while (left := _remaining(termination, iterations, cpu0)) is not None:
         child = seed if runs == 0 else int(children.spawn(1)[0].generate_state(1)[0])
         p = solve(left, child)
@@ -77,16 +78,30 @@ def solve_with_restarts(solve: Callable[[TerminationCondition, int], Plan],
         if not p.solved and runs == 1:
             break  # the budget did not even give a first solution
         if p.solved and improve is not None:
-            # at most the CPU its solve took: at least half the CPU grows trees, so where the
-            # improvement fails the scheme is at worst half as fast as plain restarts
+            # at most what its solve took, times (gains + 1) / (tries + 1) of earlier
+            # improvements (1 at first): where improving pays it gets as much as growing
+            # trees, where it fails ever less. With an iteration budget the allowance is in
+            # iterations, each step of the improvement (a ``stop()`` call) counting as one,
+            # so that the result stays a function of the seed; else in CPU seconds
             t0, c0 = time.perf_counter(), time.thread_time()
-            share = p.planning_cpu_s
+            fraction = (gains + 1) / (tries + 1)
+            before = p.path_cost
+            steps = [0]
 
-            def stop(its: int = iterations, c0: float = c0, share: float = share) -> bool:
-                return time.thread_time() - c0 >= share or \
+            def stop(its: int = iterations, c0: float = c0, steps: list = steps,
+                     cpu_share: float = p.planning_cpu_s * fraction,
+                     its_share: float = max(1, p.iterations) * fraction) -> bool:
+                steps[0] += 1
+                if termination.max_iterations is not None:
+                    return steps[0] > its_share or \
+                        _remaining(termination, its + steps[0], cpu0) is None
+                return time.thread_time() - c0 >= cpu_share or \
                     _remaining(termination, its, cpu0) is None
 
             p = improve(p, stop)
+            iterations += steps[0]
+            tries += 1
+            gains += p.path_cost < before
             cpu += time.thread_time() - c0
             wall += time.perf_counter() - t0
             if p.path_cost < best.path_cost:
