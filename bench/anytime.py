@@ -101,7 +101,8 @@ def draw(curves: dict, grid: np.ndarray, optima: dict, path: str) -> None:
         # a query without a solution yet counts as infinitely dear: the median is drawn from
         # when half the queries have their first solution, each quartile from when it is finite
         c = np.where(np.isnan(c), np.inf, c)
-        q1, med, q3 = np.percentile(c, [25, 50, 75], axis=0)
+        with np.errstate(invalid="ignore"):  # inf - inf between two unsolved queries
+            q1, med, q3 = np.percentile(c, [25, 50, 75], axis=0)
         (line,) = ax.plot(np.where(np.isfinite(med), grid, np.nan), med,
                           ls="--" if "shortcuts" in name else "-", label=f"{name}: median")
         shown = np.isfinite(q3)
