@@ -146,7 +146,7 @@ def sympy_to_casadi(expr: Any, symbols: dict) -> Any:
                 value = conv(piece)
                 out = value if out is None and c is sympy.true else ca.if_else(
                     cond(c), value, math.nan if out is None else out)
-        elif isinstance(e, sympy.Function) and type(e).__name__ in funcs:
+        elif type(e).__name__ in funcs:
             out = funcs[type(e).__name__](*[conv(a) for a in e.args])
         else:
             raise ValueError(f"cannot convert {type(e).__name__} ({e}) to CasADi; supported: "
@@ -347,12 +347,25 @@ class _Transcription:
 # guesses and checks
 
 
+def _unpacked_result(nlp: _Transcription, z: np.ndarray) -> CollocationResult:
+    T, X, U, Um, _ = nlp.unpack(z)
+    return CollocationResult(success=False, status="", cost=math.nan, duration=T,
+                             times=np.linspace(0.0, T, nlp.N + 1), states=X, controls=U,
+                             mid_controls=Um, guess="", n_intervals=nlp.N, cpu_s=0.0)
+
+
 def _line_guess(start, target, duration, N, m):
     s = np.linspace(0.0, 1.0, N + 1)[:, None]
     return duration, start + (target - start) * s, np.zeros((N + 1, m)), np.zeros((N, m))
 
 
 def _path_guess(path, N, m, angles):
+    if isinstance(path, CollocationResult):  # its own interpolants: states linear, u(t)
+        nodes = np.linspace(0.0, path.duration, N + 1)
+        mids = 0.5 * (nodes[:-1] + nodes[1:])
+        X = np.stack([np.interp(nodes, path.times, path.states[:, i])
+                      for i in range(path.states.shape[1])], axis=1)
+        return path.duration, X, path.control_at(nodes), path.control_at(mids)
     try:
         times, states, controls = (np.asarray(a, dtype=np.float64) for a in path)
     except (TypeError, ValueError):
@@ -474,7 +487,9 @@ def optimal_cost(system, start, goal, *, tolerance: float = 0.0, time_weight: fl
                  goal_distance: Callable[[Any], Any] | None = None,
                  n_intervals: int = N_INTERVALS, durations: Sequence[float] = DURATIONS,
                  turns: Sequence[int] = (0,), path: tuple | None = None,
-                 t_min: float = T_MIN, t_max: float | None = None, max_iter: int = 3000,
+                 t_min: float = T_MIN, t_max: float | None = None,
+                 fixed_first: bool = True, search_intervals: int | None = None,
+                 refine_best: int = 2, max_iter: int = 1000,
                  ipopt: dict | None = None) -> CollocationResult:
     """The minimum of ``time_weight * T + integral u^T R u / 2`` from ``start`` to the goal
     region, by Hermite-Simpson collocation on ``n_intervals`` intervals and IPOPT.
@@ -495,9 +510,17 @@ def optimal_cost(system, start, goal, *, tolerance: float = 0.0, time_weight: fl
     coordinates the representative nearest the start, moved by each of ``turns`` whole
     turns), zero control, at each duration of ``durations``; and ``path`` = (times (K,),
     states (K, n), controls (K-1 or K, m), controls held over each step) resampled onto the
-    grid. T is free in [``t_min``, ``t_max``] (default 2 x the longest guess duration).
-    ``ipopt`` adds IPOPT options. Returns the cheapest converged solution
-    (`CollocationResult`), checked by re-simulation.
+    grid (or a `CollocationResult`, e.g. of a coarser solve). T is free in [``t_min``,
+    ``t_max``] (default 2 x the longest guess duration).
+    With ``fixed_first`` each guess is first solved with T fixed to its duration, and the
+    free-time problem starts from that solution (from a poor guess IPOPT otherwise tends to
+    shrink T towards ``t_min`` and stop at a local infeasibility).
+    With ``search_intervals`` (< ``n_intervals``) every guess is solved on that coarser grid
+    first and only the ``refine_best`` cheapest distinct converged solutions are solved again
+    on ``n_intervals`` (from their own interpolants): a wide search at a fraction of the CPU.
+    ``max_iter`` bounds IPOPT's iterations per solve, ``ipopt`` adds IPOPT options.
+    Returns the cheapest converged solution (`CollocationResult`), checked by
+    re-simulation.
     """
     cpu0 = time.process_time()
     f, r = casadi_dynamics(system)
@@ -523,8 +546,11 @@ def optimal_cost(system, start, goal, *, tolerance: float = 0.0, time_weight: fl
     if not (np.all(np.isfinite(weights)) and np.all(weights >= 0) and np.any(weights > 0)):
         raise ValueError("goal_weights must be finite, non-negative and not all zero")
     n_intervals = int(n_intervals)
-    if n_intervals < 2:
-        raise ValueError(f"n_intervals must be at least 2, got {n_intervals}")
+    if n_intervals < 2 or (search_intervals is not None and int(search_intervals) < 2):
+        raise ValueError(f"n_intervals and search_intervals must be at least 2, got "
+                         f"{n_intervals} and {search_intervals}")
+    if int(refine_best) < 1:
+        raise ValueError(f"refine_best must be at least 1, got {refine_best}")
     durations = [float(d) for d in durations]
     if any(not (math.isfinite(d) and d > 0) for d in durations):
         raise ValueError(f"durations must be positive numbers, got {durations}")
@@ -558,65 +584,109 @@ def optimal_cost(system, start, goal, *, tolerance: float = 0.0, time_weight: fl
         fixed = np.setdiff1d(np.arange(n), free)
         if np.any(goal[fixed] < x_low[fixed]) or np.any(goal[fixed] > x_high[fixed]):
             raise ValueError(f"the goal {goal.tolist()} is outside the state bounds")
-    longest = max(durations + ([float(np.ptp(np.asarray(path[0], dtype=float)))]
-                               if path is not None else []))
+    if path is not None and not isinstance(path, CollocationResult):
+        _path_guess(path, 2, m, angles)  # validated before any NLP is built
+    path_duration = [] if path is None else [
+        path.duration if isinstance(path, CollocationResult)
+        else float(np.ptp(np.asarray(path[0], dtype=float)))]
+    longest = max(durations + path_duration)
     t_max = 2.0 * longest if t_max is None else float(t_max)
     if not (t_max > t_min > 0):
         raise ValueError(f"need 0 < t_min < t_max, got {t_min} and {t_max}")
 
-    nlp = _Transcription(f, r, n, m, n_intervals, wrap, weights, mode, goal_distance,
-                         max_iter, ipopt)
-    N = n_intervals
-    lbx = np.full(nlp.n_vars, -np.inf)
-    ubx = np.full(nlp.n_vars, np.inf)
-    lbx[0], ubx[0] = t_min, t_max
-    lbx[nlp.ix:nlp.iu] = np.tile(x_low, N + 1)
-    ubx[nlp.ix:nlp.iu] = np.tile(x_high, N + 1)
-    lbx[nlp.iu:nlp.id] = np.tile(u_low, 2 * N + 1)
-    ubx[nlp.iu:nlp.id] = np.tile(u_high, 2 * N + 1)
-    lbx[nlp.id:], ubx[nlp.id:] = -np.pi, np.pi
-    if mode == "point":  # a point in the weighted angles (free where the weight is 0)
-        for k, j in enumerate(wrap):
-            if weights[j] > 0:
-                lbx[nlp.id + k] = ubx[nlp.id + k] = 0.0
     params = np.concatenate([start, goal, [time_weight, tolerance]])
 
-    # guesses
-    guesses: list[tuple[str, tuple]] = []
-    if path is not None:
-        guesses.append(("path", _path_guess(path, N, m, angles)))
-    base = goal.copy()
-    for j in wrap:  # the representative nearest the start
-        base[j] = goal[j] + 2 * np.pi * np.round((start[j] - goal[j]) / (2 * np.pi))
-    for combo in itertools.product(turns, repeat=len(wrap)):
-        target = base.copy()
-        for j, k in zip(wrap, combo, strict=True):
-            target[j] += 2 * np.pi * k
-        label = "" if not wrap or len(turns) == 1 else f" turns={combo}"
-        for d in durations:
-            guesses.append((f"line T={d:g}{label}", _line_guess(start, target, d, N, m)))
+    def solve_all(N: int, guesses: list, stage: str):
+        """Solve every guess (label, T, X, U, Um) on N intervals; the attempts and the
+        solutions as (ok, cost, label, status, z, nlp), cheapest converged first."""
+        nlp = _Transcription(f, r, n, m, N, wrap, weights, mode, goal_distance,
+                             max_iter, ipopt)
+        lbx = np.full(nlp.n_vars, -np.inf)
+        ubx = np.full(nlp.n_vars, np.inf)
+        lbx[0], ubx[0] = t_min, t_max
+        lbx[nlp.ix:nlp.iu] = np.tile(x_low, N + 1)
+        ubx[nlp.ix:nlp.iu] = np.tile(x_high, N + 1)
+        lbx[nlp.iu:nlp.id] = np.tile(u_low, 2 * N + 1)
+        ubx[nlp.iu:nlp.id] = np.tile(u_high, 2 * N + 1)
+        lbx[nlp.id:], ubx[nlp.id:] = -np.pi, np.pi
+        if mode == "point":  # a point in the weighted angles (free where the weight is 0)
+            for k, j in enumerate(wrap):
+                if weights[j] > 0:
+                    lbx[nlp.id + k] = ubx[nlp.id + k] = 0.0
+        attempts, solutions = [], []
+        for label, T0, X0, U0, Um0 in guesses:
+            D0 = np.array([(X0[-1, j] - goal[j] + np.pi) % (2 * np.pi) - np.pi for j in wrap])
+            z0 = nlp.pack(np.clip(T0, t_min, t_max), np.clip(X0, x_low, x_high),
+                          np.clip(U0, u_low, u_high), np.clip(Um0, u_low, u_high),
+                          np.clip(D0, lbx[nlp.id:], ubx[nlp.id:]))
+            c = time.process_time()
+            iterations = 0
+            first = None
+            if fixed_first:  # the guess's duration held first: T cannot collapse
+                fixed_lbx, fixed_ubx = lbx.copy(), ubx.copy()
+                fixed_lbx[0] = fixed_ubx[0] = z0[0]
+                out = nlp.solver(x0=z0, p=params, lbx=fixed_lbx, ubx=fixed_ubx, lbg=nlp.lbg,
+                                 ubg=nlp.ubg)
+                iterations += int(nlp.solver.stats()["iter_count"])
+                first = str(nlp.solver.stats()["return_status"])
+                z1 = np.asarray(out["x"], dtype=np.float64).ravel()
+                if first in _SUCCESS and np.isfinite(z1).all():
+                    z0 = z1
+            out = nlp.solver(x0=z0, p=params, lbx=lbx, ubx=ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+            stats = nlp.solver.stats()
+            iterations += int(stats["iter_count"])
+            z = np.asarray(out["x"], dtype=np.float64).ravel()
+            cost = float(out["f"])
+            status = str(stats["return_status"])
+            ok = status in _SUCCESS and math.isfinite(cost) and bool(np.isfinite(z).all())
+            attempts.append({"stage": stage, "n_intervals": N, "guess": label,
+                             "status": status, "success": ok, "cost": cost,
+                             "duration": float(z[0]), "iterations": iterations,
+                             "fixed_duration_status": first,
+                             "cpu_s": time.process_time() - c})
+            solutions.append((ok, cost if math.isfinite(cost) else math.inf, label, status, z,
+                              nlp))
+        solutions.sort(key=lambda sol: (not sol[0], sol[1]))
+        return attempts, solutions
 
-    attempts = []
-    best = None
-    for label, (T0, X0, U0, Um0) in guesses:
-        D0 = np.array([(X0[-1, j] - goal[j] + np.pi) % (2 * np.pi) - np.pi for j in wrap])
-        z0 = nlp.pack(np.clip(T0, t_min, t_max), np.clip(X0, x_low, x_high),
-                      np.clip(U0, u_low, u_high), np.clip(Um0, u_low, u_high),
-                      np.clip(D0, lbx[nlp.id:], ubx[nlp.id:]))
-        c = time.process_time()
-        out = nlp.solver(x0=z0, p=params, lbx=lbx, ubx=ubx, lbg=nlp.lbg, ubg=nlp.ubg)
-        stats = nlp.solver.stats()
-        z = np.asarray(out["x"], dtype=np.float64).ravel()
-        cost = float(out["f"])
-        status = str(stats["return_status"])
-        ok = status in _SUCCESS and math.isfinite(cost) and bool(np.isfinite(z).all())
-        attempts.append({"guess": label, "status": status, "success": ok, "cost": cost,
-                         "duration": float(z[0]), "iterations": int(stats["iter_count"]),
-                         "cpu_s": time.process_time() - c})
-        key = (not ok, cost if math.isfinite(cost) else math.inf)
-        if best is None or key < best[0]:
-            best = (key, label, status, z, cost, ok)
-    _, label, status, z, cost, ok = best
+    def initial_guesses(N: int) -> list:
+        guesses = []
+        if path is not None:
+            guesses.append(("path", *_path_guess(path, N, m, angles)))
+        base = goal.copy()
+        for j in guess_wrap:  # the representative nearest the start
+            base[j] = goal[j] + 2 * np.pi * np.round((start[j] - goal[j]) / (2 * np.pi))
+        for combo in itertools.product(turns, repeat=len(guess_wrap)):
+            target = base.copy()
+            for j, k in zip(guess_wrap, combo, strict=True):
+                target[j] += 2 * np.pi * k
+            label = "" if not guess_wrap or len(turns) == 1 else f" turns={combo}"
+            for d in durations:
+                guesses.append((f"line T={d:g}{label}", *_line_guess(start, target, d, N, m)))
+        return guesses
+
+    guess_wrap = wrap if mode != "task" else angles
+    if search_intervals is None or int(search_intervals) == n_intervals:
+        attempts, solutions = solve_all(n_intervals, initial_guesses(n_intervals), "search")
+    else:
+        attempts, coarse = solve_all(int(search_intervals),
+                                     initial_guesses(int(search_intervals)), "search")
+        refine = []
+        for ok, cost, label, _, z, nlp in coarse:
+            if ok and len(refine) < refine_best and all(
+                    abs(cost - c) > 1e-6 * abs(c) for c, _ in refine):
+                refine.append((cost, (label, z, nlp)))
+        if not refine:  # nothing converged: the search's best attempt, refined anyway
+            refine = [(coarse[0][1], (coarse[0][2], coarse[0][4], coarse[0][5]))]
+        fine = []
+        for _, (label, z, nlp) in refine:
+            coarse_result = _unpacked_result(nlp, z)
+            fine.append((f"{label} (refined)",
+                         *_path_guess(coarse_result, n_intervals, m, angles)))
+        more, solutions = solve_all(n_intervals, fine, "refine")
+        attempts += more
+    ok, cost, label, status, z, nlp = solutions[0]
+    N = n_intervals
     T, X, U, Um, _ = nlp.unpack(z)
     result = CollocationResult(
         success=ok, status=status, cost=cost, duration=T, times=np.linspace(0, T, N + 1),
