@@ -78,6 +78,18 @@ def problems():
     }
 
 
+def _options(args, durations) -> dict:
+    kwargs = {"durations": durations, "turns": [int(k) for k in args.turns.split(",")]}
+    if args.n_intervals:
+        kwargs["n_intervals"] = args.n_intervals
+    if args.search_intervals:
+        kwargs["search_intervals"] = args.search_intervals
+        kwargs["refine_best"] = args.refine_best
+    if args.t_max:
+        kwargs["t_max"] = args.t_max
+    return kwargs
+
+
 def main(argv=None) -> None:
     from rrtcolearn.baselines.collocation import problem_optimum
 
@@ -89,22 +101,29 @@ def main(argv=None) -> None:
     ap.add_argument("--durations", default=None)
     ap.add_argument("--turns", default="0")
     ap.add_argument("--t-max", type=float, default=None)
+    ap.add_argument("--path-from", default=None,
+                    help="solve this problem first (same settings) and add its solution as "
+                         "the path guess of every problem (e.g. a tighter input bound's)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     table = problems()
     out = {}
+    seed = None
+    if args.path_from:
+        make_problem, goal_distance, durations = table[args.path_from]
+        if args.durations:
+            durations = [float(v) for v in args.durations.split(",")]
+        seed = problem_optimum(make_problem(), goal_distance=goal_distance,
+                               **_options(args, durations))
+        print(f"path guess: {args.path_from}, cost {seed.cost:.6g}, T {seed.duration:.4g} s, "
+              f"N {seed.n_intervals}, {seed.status}", flush=True)
     for name in args.problems.split(","):
         make_problem, goal_distance, durations = table[name]
         if args.durations:
             durations = [float(v) for v in args.durations.split(",")]
-        kwargs = {"durations": durations, "turns": [int(k) for k in args.turns.split(",")]}
-        if args.n_intervals:
-            kwargs["n_intervals"] = args.n_intervals
-        if args.search_intervals:
-            kwargs["search_intervals"] = args.search_intervals
-            kwargs["refine_best"] = args.refine_best
-        if args.t_max:
-            kwargs["t_max"] = args.t_max
+        kwargs = _options(args, durations)
+        if seed is not None:
+            kwargs["path"] = seed
         problem = make_problem()
         res = problem_optimum(problem, goal_distance=goal_distance, **kwargs)
         s = res.summary()

@@ -517,7 +517,8 @@ def optimal_cost(system, start, goal, *, tolerance: float = 0.0, time_weight: fl
     shrink T towards ``t_min`` and stop at a local infeasibility).
     With ``search_intervals`` (< ``n_intervals``) every guess is solved on that coarser grid
     first and only the ``refine_best`` cheapest distinct converged solutions are solved again
-    on ``n_intervals`` (from their own interpolants): a wide search at a fraction of the CPU.
+    on ``n_intervals`` (from their own interpolants), beside ``path`` solved on
+    ``n_intervals`` directly: a wide search at a fraction of the CPU.
     ``max_iter`` bounds IPOPT's iterations per solve, ``ipopt`` adds IPOPT options.
     Returns the cheapest converged solution (`CollocationResult`), checked by
     re-simulation.
@@ -649,9 +650,9 @@ def optimal_cost(system, start, goal, *, tolerance: float = 0.0, time_weight: fl
         solutions.sort(key=lambda sol: (not sol[0], sol[1]))
         return attempts, solutions
 
-    def initial_guesses(N: int) -> list:
+    def initial_guesses(N: int, with_path: bool = True) -> list:
         guesses = []
-        if path is not None:
+        if path is not None and with_path:
             guesses.append(("path", *_path_guess(path, N, m, angles)))
         base = goal.copy()
         for j in guess_wrap:  # the representative nearest the start
@@ -669,8 +670,9 @@ def optimal_cost(system, start, goal, *, tolerance: float = 0.0, time_weight: fl
     if search_intervals is None or int(search_intervals) == n_intervals:
         attempts, solutions = solve_all(n_intervals, initial_guesses(n_intervals), "search")
     else:
+        # the lines on the coarse grid; a given path is already a good guess: fine grid
         attempts, coarse = solve_all(int(search_intervals),
-                                     initial_guesses(int(search_intervals)), "search")
+                                     initial_guesses(int(search_intervals), False), "search")
         refine = []
         for ok, cost, label, _, z, nlp in coarse:
             if ok and len(refine) < refine_best and all(
@@ -678,15 +680,19 @@ def optimal_cost(system, start, goal, *, tolerance: float = 0.0, time_weight: fl
                 refine.append((cost, (label, z, nlp)))
         if not refine:  # nothing converged: the search's best attempt, refined anyway
             refine = [(coarse[0][1], (coarse[0][2], coarse[0][4], coarse[0][5]))]
-        fine = []
+        fine = [] if path is None else [("path", *_path_guess(path, n_intervals, m, angles))]
         for _, (label, z, nlp) in refine:
             coarse_result = _unpacked_result(nlp, z)
             fine.append((f"{label} (refined)",
                          *_path_guess(coarse_result, n_intervals, m, angles)))
         more, solutions = solve_all(n_intervals, fine, "refine")
         attempts += more
+        if not solutions[0][0] and coarse[0][0]:  # no refinement converged: the search's
+            solutions = coarse[:1]                # converged best, on its own grid
+            solutions[0] = (*solutions[0][:2], f"{solutions[0][2]} (search grid: no "
+                            "refinement converged)", *solutions[0][3:])
     ok, cost, label, status, z, nlp = solutions[0]
-    N = n_intervals
+    N = nlp.N
     T, X, U, Um, _ = nlp.unpack(z)
     result = CollocationResult(
         success=ok, status=status, cost=cost, duration=T, times=np.linspace(0, T, N + 1),
