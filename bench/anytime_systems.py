@@ -1,0 +1,68 @@
+"""Anytime schemes on a fitted run's standard query: plain restarts against restarts with
+goal shortcuts (`planning.improve.shortcut`), at equal CPU, seed by seed.
+
+    python bench/anytime_systems.py RUN_DIR [--budget 10] [--queries 10] [--optimum C]
+
+RUN_DIR is a `rrtcolearn run` directory (e.g. of examples.sparse_rrt_cartpole:make_cartpole;
+run from the repository root so that ``examples`` imports). The query is the system's
+default (start, goal, the config's tolerance). ``--optimum`` is the collocation optimum of
+that query (docs/collocation.md), for the ratios and the share of the gap closed. Prints one
+line per query and scheme, then one JSON line of medians.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from functools import partial
+
+from rrtcolearn import pipeline
+from rrtcolearn.anytime import solve_with_restarts
+from rrtcolearn.planning.improve import shortcut
+from rrtcolearn.planning.rrt import RRTCoLearn
+from rrtcolearn.planning.termination import TerminationCondition
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run_dir")
+    ap.add_argument("--budget", type=float, default=10.0, help="CPU seconds per query")
+    ap.add_argument("--queries", type=int, default=10)
+    ap.add_argument("--optimum", type=float, default=None)
+    args = ap.parse_args(argv)
+    m = pipeline.load_model(args.run_dir)
+    d = m.system.defaults
+    problem = pipeline.make_problem(m.system, m.config, d["start"], d["goal"],
+                                    m.config.plan.goal_tolerance)
+    planner = RRTCoLearn(problem, m.functions, m.planner_settings())
+    schemes = {"restarts": None, "restarts+shortcuts": partial(shortcut, planner)}
+    rows: dict[str, list[tuple[float, float, int]]] = {k: [] for k in schemes}
+    for seed in range(args.queries):
+        for name, improve in schemes.items():
+            p = solve_with_restarts(planner.solve, TerminationCondition(None, None, args.budget),
+                                    seed, improve=improve)
+            a = p.extra["anytime"]
+            print(name, seed, a["first_solution_cost"], p.path_cost if p.solved else None,
+                  a["solves"], flush=True)
+            if a["first_solution_cost"] is not None:
+                rows[name].append((a["first_solution_cost"], p.path_cost, a["solves"]))
+    out = {}
+    for name, r in rows.items():
+        first = statistics.median(x[0] for x in r)
+        best = statistics.median(x[1] for x in r)
+        row = {"solved": f"{len(r)}/{args.queries}", "first_cost_median": round(first, 4),
+               "best_cost_median": round(best, 4),
+               "best_over_first_median": round(statistics.median(x[1] / x[0] for x in r), 4),
+               "solves_median": statistics.median(x[2] for x in r)}
+        if args.optimum:
+            row["best_over_optimum"] = round(best / args.optimum, 4)
+            row["gap_closed"] = round((first - best) / (first - args.optimum), 4)
+        out[name] = row
+        print(f"{name}: " + " ".join(f"{k}={v}" for k, v in row.items()), flush=True)
+    print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main()
