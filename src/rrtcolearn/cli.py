@@ -414,7 +414,8 @@ def plan(
     max_iterations: Annotated[int | None, typer.Option(help="iteration limit")] = None,
     anytime: Annotated[bool | None, typer.Option(
         "--anytime/--first-solution", help="spend the whole limit, solving again with fresh "
-        "seeds and keeping the cheapest path (plan.anytime); default: the first solution")
+        "seeds, shortcutting each path to the goal and keeping the cheapest (plan.anytime); "
+        "default: the first solution")
     ] = None,
     out: Annotated[Path | None, typer.Option(
         "--out", help="plan file (JSON); with --queries a directory (default "

@@ -210,8 +210,10 @@ class PlanConfig(_Section):
     max_iterations: int | None = Field(None, ge=1)
     anytime: bool = Field(
         False, description="spend the whole time (or iteration) limit: after the first "
-        "solution solve again with fresh child seeds and return the cheapest path, its best "
-        "cost against CPU in the plan's extra.anytime.progress (rrtcolearn.anytime)")
+        "solution solve again with fresh child seeds, shortcut every path to the goal by "
+        "exact extremals or the LQR loop, and return the cheapest path, its best cost "
+        "against CPU in the plan's extra.anytime.progress (rrtcolearn.anytime, "
+        "rrtcolearn.planning.improve)")
     obstacles: list[ObstacleConfig] = Field(default_factory=list)
     extend_distance: float | None = Field(
         None, ge=0, description="move random targets to within this (weighted) distance of "
