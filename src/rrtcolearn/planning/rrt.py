@@ -14,7 +14,7 @@ from rrtcolearn import derive
 from rrtcolearn.config import Config, GenerateConfig, PlanConfig, SystemConfig
 from rrtcolearn.errors import ConfigError
 from rrtcolearn.integrate import propagate_draws, rollout
-from rrtcolearn.learn.models import LearnedFunctions
+from rrtcolearn.learn.models import LearnedFunctions, best_valid
 from rrtcolearn.planning.funnel import GoalFunnel
 from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
 from rrtcolearn.planning.nearest import NodeIndex
@@ -738,16 +738,15 @@ class RRTCoLearn:
             aims = aims[within][order]
         sh = shifts[near]
         query = np.concatenate([states[near] + sh, aims + sh], axis=1)
-        rows, cost, neighbours = self.model.query_valid(query)
-        if rows.size == 0:
+        row, neighbours = best_valid(self.model, query)
+        if row < 0:
             self._rejected = "invalid_query"
             return none
-        best = int(np.argmin(cost))
-        parent = int(near[rows[best]])
-        prediction = self.model.steer(query[rows[best] : rows[best] + 1],
-                                      neighbours[best : best + 1])[0]
+        parent = int(near[row])
+        prediction = self.model.steer(query[row : row + 1],
+                                      None if neighbours is None else neighbours[None])[0]
         x0 = states[parent]
-        aim = aims[rows[best]] if aim_images else target
+        aim = aims[row] if aim_images else target
         sigma = s.sigma_goal if to_goal else s.sigma
         edge, best_d2 = None, np.inf
         if s.control_samples > 1 and not self._circular.any():
