@@ -18,7 +18,7 @@ from rrtcolearn.learn.models import LearnedFunctions, best_valid
 from rrtcolearn.planning.funnel import GoalFunnel
 from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
 from rrtcolearn.planning.nearest import NodeIndex
-from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.problem import PlanningProblem, all_within
 from rrtcolearn.planning.shooting import shoot
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan, PlannerData
@@ -551,7 +551,7 @@ class RRTCoLearn:
             self._rejected = "nonfinite"
             return None
         path = traj[1:, :n]
-        if s.enforce_bounds and not prob.within_bounds(path).all():
+        if s.enforce_bounds and not all_within(path, *self._box):
             self._rejected = "state_box"
             return None
         end = steps
