@@ -5,7 +5,7 @@ The tree grows towards a goal it cannot reach (tolerance 1e-9) on the paper's pe
 so every iteration is an ordinary one. Prints one line per configuration: the paper's planner
 (J queried for every node within reach) and the default (the nearest ``plan.max_candidates``
 nodes from the tree's nearest-neighbour index). Usage: python bench/iteration_cost.py
-[--window 300] [--sizes 100,1000,10000]
+[--window 300] [--sizes 100,1000,10000] [--system NAME | --model RUN_DIR] [--set KEY=VALUE]
 """
 
 from __future__ import annotations
@@ -82,8 +82,14 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="configuration override for --system (e.g. plan.control_edges=true: "
                     "random-control edges from the first iteration, one planner throughout)")
+    ap.add_argument("--model", default=None, metavar="RUN_DIR",
+                    help="a saved run directory's model (and its system) instead of fitting "
+                    "one: the default planner only, with --set applied to its plan section")
+    ap.add_argument("--seed", type=int, default=1, help="the planner's seed")
     args = ap.parse_args(argv)
     sizes = [int(v) for v in args.sizes.split(",")]
+    if args.model is not None:
+        return _saved_model(args.model, sizes, args.window, tuple(args.set), args.seed)
     if args.system is not None:
         return _other_system(args.system, sizes, args.window, tuple(args.set))
     system = make("pendulum")
@@ -142,6 +148,38 @@ def _other_system(name: str, sizes: list[int], window: int, overrides: tuple[str
         print(f"  at {size} nodes, per call: " + ", ".join(
             f"{part} {v['ms']} ms ({v['calls']} calls)" for part, v in per.items()))
     out = {name: {"ms_per_iteration": ms, "ratio": round(ratio, 3), "parts": parts}}
+    print(json.dumps(out))
+    return out
+
+
+def _saved_model(run_dir: str, sizes: list[int], window: int, overrides: tuple[str, ...] = (),
+                 seed: int = 1) -> dict:
+    """`_other_system` on the model saved in ``run_dir`` (no data generated or fitted): its
+    own plan settings with goal connections off and ``overrides``."""
+    from rrtcolearn import pipeline
+    from rrtcolearn.config import load_config
+
+    model = pipeline.load_model(run_dir)
+    base = model.config
+    cfg = load_config(None, ["plan.goal_connect=false", "plan.goal_funnel=0", *overrides],
+                      base={"plan": base.plan.model_dump(),
+                            "system": base.system.model_dump(exclude_none=True)})
+    cfg = base.model_copy(update={"plan": cfg.plan})
+    start, goal = pipeline.query_states(cfg, model.system)
+    problem = PlanningProblem.create(model.system, start, goal, 1e-9,
+                                     wrap_goal=cfg.plan.wrap_goal)
+    planner = RRTCoLearn(problem, model.functions, model.planner_settings(cfg))
+    probe = _Probe(planner, sizes, window)
+    planner.solve(probe, seed=seed)
+    ms = {s: round(1e3 * v, 4) for s, v in probe.result.items()}
+    name = f"{model.system.name} ({run_dir})"
+    print(f"{name}{' ' + ' '.join(overrides) if overrides else ''}: ms per iteration at "
+          + ", ".join(f"{s} nodes {v}" for s, v in ms.items()))
+    parts = _part_costs(probe)
+    for size, per in parts.items():
+        print(f"  at {size} nodes, per call: " + ", ".join(
+            f"{part} {v['ms']} ms ({v['calls']} calls)" for part, v in per.items()))
+    out = {name: {"ms_per_iteration": ms, "parts": parts}}
     print(json.dumps(out))
     return out
 

@@ -13,6 +13,7 @@ import warnings
 import zipfile
 from collections.abc import Mapping
 
+import numba
 import numpy as np
 
 __all__ = ["NeuralRegressor"]
@@ -198,6 +199,23 @@ class NeuralRegressor:
             out[:, c] = np.where(val >= high, low, val)
         return out[:, 0] if self.flat_target_ else out
 
+    def predict_plain(self, X: np.ndarray) -> np.ndarray:
+        """`predict` (Q,) for a model of one non-circular target, each row computed on its
+        own by a compiled loop: a row's value does not depend on the other rows of the batch
+        (numpy's matrix products through BLAS sum in an order that does, so `predict`'s
+        values may differ from these in the last bits)."""
+        self._check_fitted()
+        if self.n_targets_ != 1 or self.circular_.any():
+            raise ValueError("predict_plain needs a model of one non-circular target")
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        if X.ndim != 2 or X.shape[1] != self.n_features_in_:
+            raise ValueError(f"X must be (Q, {self.n_features_in_}), got shape {X.shape}")
+        if not hasattr(self, "_layers"):
+            self._layers = (tuple(self.coefs_), tuple(self.intercepts_))
+        z = _forward_rows(X, self.x_mean_, self.x_std_, *self._layers,
+                          float(self.z_std_[0]), float(self.z_mean_[0]))
+        return np.exp(z) if self.log_target else z
+
     # ------------------------------------------------------------ serialisation
 
     def to_arrays(self) -> dict[str, np.ndarray]:
@@ -297,6 +315,41 @@ class NeuralRegressor:
                              for i in range(n_layers)]
         model.n_features_in_ = n_in
         return model
+
+
+@numba.njit(cache=True)
+def _forward_rows(X, x_mean, x_std, coefs, intercepts, z_std, z_mean):
+    """The network's single output for each row of X, standardised back (z * z_std +
+    z_mean), computed row by row with sums in coordinate order."""
+    q, d = X.shape
+    width = d
+    for w in coefs:
+        width = max(width, w.shape[1])
+    h = np.empty(width)
+    out_h = np.empty(width)
+    z = np.empty(q)
+    n_layers = len(coefs)
+    for r in range(q):
+        for j in range(d):
+            h[j] = (X[r, j] - x_mean[j]) / x_std[j]
+        size = d
+        for layer in range(n_layers):
+            w = coefs[layer]
+            b = intercepts[layer]
+            m = w.shape[1]
+            for j in range(m):
+                out_h[j] = 0.0
+            for i in range(size):
+                hi = h[i]
+                for j in range(m):
+                    out_h[j] += hi * w[i, j]
+            last = layer == n_layers - 1
+            for j in range(m):
+                v = out_h[j] + b[j]
+                h[j] = v if last or v > 0.0 else 0.0
+            size = m
+        z[r] = h[0] * z_std + z_mean
+    return z
 
 
 def _train_stages(net, X: np.ndarray, z: np.ndarray, max_iter: int,

@@ -178,6 +178,10 @@ class _NetworkAnswers:
     def steer(self, X: np.ndarray, idx: np.ndarray) -> np.ndarray:
         return self.networks[1].predict(np.asarray(X, dtype=np.float64))
 
+    def cost_rows(self, X: np.ndarray) -> np.ndarray:
+        """`cost` computed row by row (a row's J does not depend on the batch)."""
+        return np.clip(self.networks[0].predict_plain(X), *self.bounds)
+
 
 class LearnedFunctions:
     """J, U and V fitted on one dataset and answered from one shared neighbour query
@@ -352,6 +356,34 @@ class LearnedFunctions:
         if asked:
             self._accepted = 0.9 * self._accepted + 0.1 * rows.size / asked
         return rows, self._answers.cost(np.asarray(X)[rows], dist, idx), idx
+
+
+def best_valid(functions: LearnedFunctions, X: np.ndarray) -> tuple[int, np.ndarray | None]:
+    """The row of X (Q, 2n) that V accepts with the least J (the first such row among
+    equal J) and its neighbour indices (m,) for `LearnedFunctions.steer`; (-1, None) when V
+    accepts none. The row `query_valid`'s least J picks.
+
+    With the networks' J it is found without V's answer for every row: J of every row
+    the coverage prefilter keeps (row by row, `NeuralRegressor.predict_plain`), then V on
+    the rows in order of J until one is valid (`NeighbourIndex.first_valid`), so V usually
+    answers one or two rows instead of all. Those J values may differ from `query_valid`'s
+    (numpy's batch products) in the last bits; the neighbours are not needed (None)."""
+    answers = functions._answers
+    if not isinstance(answers, _NetworkAnswers):
+        rows, cost, idx = functions.query_valid(X)
+        if rows.size == 0:
+            return -1, None
+        best = int(np.argmin(cost))
+        return int(rows[best]), idx[best]
+    Xs = functions._scaled(X)
+    rows = np.flatnonzero(functions.validity_.may_be_valid(Xs))
+    if rows.size == 0:
+        return -1, None
+    cost = answers.cost_rows(np.asarray(X, dtype=np.float64)[rows])
+    order = rows[np.argsort(cost, kind="stable")]
+    v = functions.validity_
+    return functions.cost_to_go_.index_.first_valid(Xs, order, v.n_neighbors,
+                                                      v.threshold), None
 
 
 def _dilate(grid: np.ndarray) -> np.ndarray:

@@ -14,11 +14,11 @@ from rrtcolearn import derive
 from rrtcolearn.config import Config, GenerateConfig, PlanConfig, SystemConfig
 from rrtcolearn.errors import ConfigError
 from rrtcolearn.integrate import propagate_draws, rollout
-from rrtcolearn.learn.models import LearnedFunctions
+from rrtcolearn.learn.models import LearnedFunctions, best_valid
 from rrtcolearn.planning.funnel import GoalFunnel
 from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
 from rrtcolearn.planning.nearest import NodeIndex
-from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.problem import PlanningProblem, all_within
 from rrtcolearn.planning.shooting import shoot
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan, PlannerData
@@ -551,7 +551,7 @@ class RRTCoLearn:
             self._rejected = "nonfinite"
             return None
         path = traj[1:, :n]
-        if s.enforce_bounds and not prob.within_bounds(path).all():
+        if s.enforce_bounds and not all_within(path, *self._box):
             self._rejected = "state_box"
             return None
         end = steps
@@ -738,16 +738,15 @@ class RRTCoLearn:
             aims = aims[within][order]
         sh = shifts[near]
         query = np.concatenate([states[near] + sh, aims + sh], axis=1)
-        rows, cost, neighbours = self.model.query_valid(query)
-        if rows.size == 0:
+        row, neighbours = best_valid(self.model, query)
+        if row < 0:
             self._rejected = "invalid_query"
             return none
-        best = int(np.argmin(cost))
-        parent = int(near[rows[best]])
-        prediction = self.model.steer(query[rows[best] : rows[best] + 1],
-                                      neighbours[best : best + 1])[0]
+        parent = int(near[row])
+        prediction = self.model.steer(query[row : row + 1],
+                                      None if neighbours is None else neighbours[None])[0]
         x0 = states[parent]
-        aim = aims[rows[best]] if aim_images else target
+        aim = aims[row] if aim_images else target
         sigma = s.sigma_goal if to_goal else s.sigma
         edge, best_d2 = None, np.inf
         if s.control_samples > 1 and not self._circular.any():

@@ -1,0 +1,52 @@
+"""The compiled k-d tree answers as scipy's cKDTree did, bit for bit."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from rrtcolearn.learn.neighbours import NeighbourIndex
+
+
+@pytest.mark.parametrize("dim", [1, 2, 4, 5, 8, 9])
+def test_query_matches_scipy_bit_for_bit(dim):
+    rng = np.random.default_rng(dim)
+    points = rng.normal(size=(3000, dim)) * rng.uniform(0.1, 3.0, dim)
+    scipy_tree = cKDTree(points)
+    index = NeighbourIndex(points)
+    queries = rng.normal(size=(500, dim)) * 2.0
+    for k, bound in ((1, np.inf), (3, np.inf), (3, 0.7), (5, 1.5), (4, 0.0)):
+        want_d, want_i = scipy_tree.query(queries, k=k, distance_upper_bound=bound)
+        if k == 1:
+            want_d, want_i = want_d[:, None], want_i[:, None]
+        got_d, got_i = index.query(queries, k, max_distance=bound)
+        assert np.array_equal(got_d, want_d) and np.array_equal(got_i, want_i)
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 31, 33, 100])
+def test_small_and_empty_sets(n):
+    rng = np.random.default_rng(n)
+    points = rng.normal(size=(n, 3))
+    index = NeighbourIndex(points)
+    d, i = index.query(rng.normal(size=(4, 3)), 3)
+    assert d.shape == i.shape == (4, 3)
+    got = min(n, 3)
+    assert np.isfinite(d[:, :got]).all() and np.isinf(d[:, got:]).all()
+    assert (i[:, got:] == n).all()
+
+
+def test_first_valid_is_the_summed_distance_test():
+    rng = np.random.default_rng(0)
+    points = rng.uniform(0.0, 1.0, size=(5000, 4))
+    index = NeighbourIndex(points)
+    queries = rng.uniform(-0.3, 1.3, size=(400, 4))
+    threshold = 0.25
+    d, _ = cKDTree(points).query(queries, k=3, distance_upper_bound=threshold)
+    valid = d.sum(axis=1) <= threshold
+    assert 0 < valid.sum() < len(valid)
+    each = [index.first_valid(queries, np.array([r]), 3, threshold) == r
+            for r in range(len(queries))]
+    assert np.array_equal(np.array(each), valid)
+    order = rng.permutation(len(queries))
+    first = index.first_valid(queries, order, 3, threshold)
+    assert first == order[np.flatnonzero(valid[order])[0]]
+    assert index.first_valid(queries, order[~valid[order]], 3, threshold) == -1
