@@ -342,5 +342,5 @@ def test_plan_anytime_writes_its_progress(tiny_run, tmp_path):
                     "--out", str(out))
     assert result.exit_code == 0, result.output
     a = json.loads(out.read_text())["anytime"]
-    assert a["scheme"] == "restarts" and a["solves"] >= 1
+    assert a["scheme"] == "restarts+shortcut" and a["solves"] >= 1
     assert "anytime_solves" in result.output

@@ -6,16 +6,20 @@ optimum of a free-final-time problem is a single extremal from the start to the 
 (Pontryagin), so the path gets cheaper as its tail is replaced by one extremal from ever
 earlier nodes.
 
-`shortcut` walks the path backwards from its second-last node. From node i it shoots one
-extremal to the goal region (`shooting.shoot`) from two guesses: the path's own edge out of i
-(its steering parameters, with the duration of the rest of the path: the chain after i is
-what the extremal has to straighten) and U's prediction for (x_i, goal). An edge that reaches
-the goal region, passes every check of a planner edge (state box, obstacles, input limit) and
-makes the cost to come of x_i plus its cost less than the best path's is added to the tree as
-a new leaf below node i, and becomes the best path; the walk goes on from the node before i
-on that path. Nothing in the tree is moved or deleted, so the tree stays a tree: every node
-is reached from the root by edges that re-simulate, and its cost to come is the sum of its
-path's edge costs.
+`shortcut` walks the path backwards from the last edge's parent to the root. From node i it
+tries two kinds of tail into the goal region:
+- one extremal by shooting (`shooting.shoot`) from two guesses: the path's own edge out of i
+  (its steering parameters, with the duration of the rest of the path: the chain after i is
+  what the extremal has to straighten), and U's prediction for (x_i, goal) where the learned
+  J says that edge may be cheaper;
+- the LQR goal loop (`lqr.GoalLQR`, as the planner's LQR connection runs it: a chain of
+  constant-input edges), where the settings allow it and the goal has an equilibrium.
+The cheapest tail that reaches the goal region, passes every check of a planner edge (state
+box, obstacles, input limit) and makes the cost to come of x_i plus its cost less than the
+best path's is added to the tree as new leaves below node i, and becomes the best path; the
+walk goes on from the node before i on that path. Nothing in the tree is moved or deleted,
+so the tree stays a tree: every node is reached from the root by edges that re-simulate, and
+its cost to come is the sum of its path's edge costs.
 
 The longest extremal worth shooting from node i is bounded by the cost: one that ends the
 path cheaper lasts at most (best - cost to come of x_i) / w.
@@ -45,12 +49,13 @@ def _costs_to_come(tree: PlannerData, path: list[int]) -> np.ndarray:
 
 def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = None
              ) -> Plan:
-    """``plan`` (solved, from ``planner``'s last `solve`) with its tail replaced by single
-    extremals to the goal wherever that is cheaper; the same plan when nothing is.
+    """``plan`` (solved, from ``planner``'s last `solve`) with its tail replaced by a single
+    extremal or an LQR chain to the goal wherever that is cheaper; the same plan when nothing
+    is.
 
     ``planner`` is the `RRTCoLearn` that made the plan (its problem, settings, learned U and
     edge checks are used). Stops early once ``stop()`` is true (checked before each node).
-    ``extra["shortcuts"]`` records the edges added and the shots tried.
+    ``extra["shortcuts"]`` records the edges added, the shots and the LQR loops tried.
     """
     if not plan.solved or len(plan.path_nodes) < 3:
         return plan
