@@ -180,3 +180,32 @@ def test_control_edges_avoid_obstacles(limited):
             wrapped[:, 0] -= 2 * np.pi * np.floor((states[:, 0] + 1.5 * np.pi) / (2 * np.pi))
             inside = np.all((wrapped >= block["low"]) & (wrapped <= block["high"]), axis=1)
             assert not inside.any()
+
+
+@pytest.mark.parametrize("directed", [False, True])
+def test_the_compiled_choice_is_the_general_one(limited, directed):
+    """A goal ball without obstacles takes `_pick_state`'s compiled pass; the general code
+    (user goal functions, obstacles) must choose the same edges from the same draws."""
+    from rrtcolearn.planning.rrt import RRTCoLearn
+
+    problem = pipeline.make_problem(limited.system, limited.config, [-np.pi, 0.0],
+                                    [0.0, 0.0], 0.5)
+    fast = RRTCoLearn(problem, limited.functions, limited.planner_settings())
+    general = RRTCoLearn(problem, limited.functions, limited.planner_settings())
+    general._ball = None
+    rng_a, rng_b = np.random.default_rng(3), np.random.default_rng(3)
+    starts = np.random.default_rng(4).uniform([-np.pi, -4.0], [np.pi, 4.0], size=(300, 2))
+    hits = 0
+    for x0 in [*starts, np.array([0.3, 0.0]), np.array([-0.2, 0.1])]:
+        a = fast._control_edge(rng_a, x0, directed)
+        b = general._control_edge(rng_b, x0, directed)
+        assert (a is None) == (b is None)
+        if a is None:
+            assert fast._rejected == general._rejected
+            continue
+        hits += a.hit
+        np.testing.assert_array_equal(a.traj, b.traj)
+        np.testing.assert_array_equal(a.control, b.control)
+        assert (a.steps, a.cost, a.u_abs, a.hit, a.end_distance) == \
+            (b.steps, b.cost, b.u_abs, b.hit, b.end_distance)
+    assert hits > 0  # the goal test was exercised

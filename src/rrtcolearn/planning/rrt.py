@@ -7,6 +7,7 @@ from dataclasses import dataclass, field, fields, replace
 from itertools import pairwise
 from typing import NamedTuple
 
+import numba
 import numpy as np
 from scipy.special import ndtr, ndtri
 
@@ -209,6 +210,54 @@ class Edge(NamedTuple):
 _STOP_REASONS = np.array([None, "state_box", "nonfinite"], dtype=object)
 
 
+@numba.njit(cache=True)
+def _pick_state(flat, counts, stops, goal, weights, angles, tol2, plain):
+    """`RRTCoLearn._control_edge`'s choice among its draws' states, compiled, for a goal
+    ball (no user goal function, no obstacles). ``flat`` (total, n) holds every draw's
+    states (`integrate.propagate_draws`); a stopped draw's last state is dropped. Returns
+    (draw c, its first row in ``flat``, the chosen state's index k within the draw, hit, the
+    chosen state's goal distance), or c = -1 and the first draw with no state left: the
+    first state in the goal ball, else (``plain``) the last state, else the state nearest
+    the goal. Distances as `PlanningProblem.goal_distance` computes them (angles of
+    ``angles`` the short way round, times ``weights``, Euclidean)."""
+    n = goal.shape[0]
+    best_c, best_row, best_k, best_d = -1, 0, 0, np.inf
+    row = 0
+    last_c, last_row, last_k = -1, 0, 0
+    for c in range(counts.shape[0]):
+        kept = counts[c] - (1 if stops[c] > 0 else 0)
+        for k in range(kept):
+            d2 = 0.0
+            for i in range(n):
+                v = flat[row + k, i] - goal[i]
+                if angles[i]:
+                    v = np.mod(v + np.pi, 2.0 * np.pi) - np.pi
+                v *= weights[i]
+                d2 += v * v
+            if d2 <= tol2:
+                return c, row, k, True, np.sqrt(d2)
+            d = np.sqrt(d2)
+            if d < best_d:
+                best_c, best_row, best_k, best_d = c, row, k, d
+            last_c, last_row, last_k = c, row, k
+        row += counts[c]
+    if last_c < 0:  # no draw kept a state: the first empty one says why
+        for c in range(counts.shape[0]):
+            if counts[c] - (1 if stops[c] > 0 else 0) == 0:
+                return -1, c, 0, False, np.inf
+    if plain:
+        c, row, k = last_c, last_row, last_k
+        d2 = 0.0
+        for i in range(n):
+            v = flat[row + k, i] - goal[i]
+            if angles[i]:
+                v = np.mod(v + np.pi, 2.0 * np.pi) - np.pi
+            v *= weights[i]
+            d2 += v * v
+        return c, row, k, False, np.sqrt(d2)
+    return best_c, best_row, best_k, False, best_d
+
+
 class _Rolled(NamedTuple):
     """A learned edge integrated and checked up to its goal test (`RRTCoLearn._roll_edge`):
     its trajectory (steps + 1, 2n + 1), the states after the parent's (steps, n), where the
@@ -386,6 +435,16 @@ class RRTCoLearn:
         # propagation stops at the state constraints (non-angle coordinates)
         self._box = problem.constraint_box if self.settings.enforce_bounds else \
             (np.full(sys.n_states, -np.inf), np.full(sys.n_states, np.inf))
+        # a goal ball as `_pick_state` takes it (goal, weights, wrapped angles, tolerance^2);
+        # None for a user goal function
+        self._ball = None
+        if problem.goal_fn is None:
+            angles = np.zeros(sys.n_states, dtype=np.bool_)
+            angles[list(problem.goal_angles)] = True
+            weights = np.ones(sys.n_states) if problem.goal_weights is None else \
+                np.asarray(problem.goal_weights, dtype=np.float64)
+            self._ball = (np.asarray(problem.goal, dtype=np.float64), weights, angles,
+                          float(problem.goal_tolerance) ** 2)
         if self._control_box is not None or self.settings.goal_lqr is not False:
             # the running cost w + u^T R u / 2 of a held input is H at lambda = 0; R read off
             # the system's H once (polarisation), so an edge's cost needs no call into it
@@ -797,6 +856,19 @@ class RRTCoLearn:
         # one compiled call for every draw; a draw's state outside the constraints (or not
         # finite) is its last, and is dropped
         flat, counts, stops = propagate_draws(sys, x0, inputs, lengths, s.dt, *self._box)
+        if self._ball is not None and not prob.validity:
+            # a goal ball and no obstacles: the choice below in one compiled pass
+            c, begin, k, hit, d = _pick_state(flat, counts, stops, *self._ball, count == 1)
+            if c < 0:
+                self._rejected = _STOP_REASONS[stops[begin]]
+                return None
+            u = inputs[c]
+            traj = np.empty((k + 2, x0.size))
+            traj[0] = x0
+            traj[1:] = flat[begin : begin + k + 1]
+            rate = s.time_weight + 0.5 * float(u @ self._input_weight @ u)
+            return Edge(traj, k + 1, (k + 1) * s.dt * rate, float(np.abs(u).max()), hit,
+                        control=u, end_distance=float(d))
         reasons = _STOP_REASONS[stops]  # a copy: "obstacle" may replace one below
         if stops.any():
             keep = np.ones(len(flat), bool)
