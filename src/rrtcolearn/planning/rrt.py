@@ -216,14 +216,15 @@ def _pick_state(flat, counts, stops, goal, weights, angles, tol2, plain):
     ball (no user goal function, no obstacles). ``flat`` (total, n) holds every draw's
     states (`integrate.propagate_draws`); a stopped draw's last state is dropped. Returns
     (draw c, its first row in ``flat``, the chosen state's index k within the draw, hit, the
-    chosen state's goal distance), or c = -1 and the first draw with no state left: the
-    first state in the goal ball, else (``plain``) the last state, else the state nearest
-    the goal. Distances as `PlanningProblem.goal_distance` computes them (angles of
-    ``angles`` the short way round, times ``weights``, Euclidean)."""
+    chosen state's goal distance), or c = -1 (and row 0: the first draw, whose stop says
+    why) when no draw kept a state. The choice: the first state in the goal ball, else
+    (``plain``) the last state, else the state nearest the goal. Distances as
+    `PlanningProblem.goal_distance` computes them (angles of ``angles`` the short way round,
+    times ``weights``, Euclidean)."""
     n = goal.shape[0]
     best_c, best_row, best_k, best_d = -1, 0, 0, np.inf
+    last_c, last_row, last_k, last_d = -1, 0, 0, np.inf
     row = 0
-    last_c, last_row, last_k = -1, 0, 0
     for c in range(counts.shape[0]):
         kept = counts[c] - (1 if stops[c] > 0 else 0)
         for k in range(kept):
@@ -239,22 +240,12 @@ def _pick_state(flat, counts, stops, goal, weights, angles, tol2, plain):
             d = np.sqrt(d2)
             if d < best_d:
                 best_c, best_row, best_k, best_d = c, row, k, d
-            last_c, last_row, last_k = c, row, k
+            last_c, last_row, last_k, last_d = c, row, k, d
         row += counts[c]
-    if last_c < 0:  # no draw kept a state: the first empty one says why
-        for c in range(counts.shape[0]):
-            if counts[c] - (1 if stops[c] > 0 else 0) == 0:
-                return -1, c, 0, False, np.inf
+    if last_c < 0:  # no draw kept a state: every one is empty, the first says why
+        return -1, 0, 0, False, np.inf
     if plain:
-        c, row, k = last_c, last_row, last_k
-        d2 = 0.0
-        for i in range(n):
-            v = flat[row + k, i] - goal[i]
-            if angles[i]:
-                v = np.mod(v + np.pi, 2.0 * np.pi) - np.pi
-            v *= weights[i]
-            d2 += v * v
-        return c, row, k, False, np.sqrt(d2)
+        return last_c, last_row, last_k, False, last_d
     return best_c, best_row, best_k, False, best_d
 
 
