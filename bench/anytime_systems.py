@@ -2,12 +2,15 @@
 goal shortcuts (`planning.improve.shortcut`), at equal CPU, seed by seed.
 
     python bench/anytime_systems.py RUN_DIR [--budget 10] [--queries 10] [--optimum C]
+                                    [--path-out FILE]
 
 RUN_DIR is a `rrtcolearn run` directory (e.g. of examples.sparse_rrt_cartpole:make_cartpole;
 run from the repository root so that ``examples`` imports). The query is the system's
 default (start, goal, the config's tolerance). ``--optimum`` is the collocation optimum of
-that query (docs/collocation.md), for the ratios and the share of the gap closed. Prints one
-line per query and scheme, then one JSON line of medians.
+that query (docs/collocation.md), for the ratios and the share of the gap closed.
+``--path-out`` writes the cheapest path found (re-simulated: ``t``, ``state``, ``input``;
+npz) for `bench/collocation.py --path-file`, the collocation started from the planner's path.
+Prints one line per query and scheme, then one JSON line of medians.
 """
 
 from __future__ import annotations
@@ -17,8 +20,11 @@ import json
 import statistics
 from functools import partial
 
+import numpy as np
+
 from rrtcolearn import pipeline
 from rrtcolearn.anytime import solve_with_restarts
+from rrtcolearn.evaluate import sample_path
 from rrtcolearn.planning.improve import shortcut
 from rrtcolearn.planning.rrt import RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
@@ -30,6 +36,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--budget", type=float, default=10.0, help="CPU seconds per query")
     ap.add_argument("--queries", type=int, default=10)
     ap.add_argument("--optimum", type=float, default=None)
+    ap.add_argument("--path-out", default=None, help="npz of the cheapest path found")
     args = ap.parse_args(argv)
     m = pipeline.load_model(args.run_dir)
     d = m.system.defaults
@@ -38,6 +45,7 @@ def main(argv: list[str] | None = None) -> dict:
     planner = RRTCoLearn(problem, m.functions, m.planner_settings())
     schemes = {"restarts": None, "restarts+shortcuts": partial(shortcut, planner)}
     rows: dict[str, list[tuple[float, float, int]]] = {k: [] for k in schemes}
+    cheapest = None
     for seed in range(args.queries):
         for name, improve in schemes.items():
             p = solve_with_restarts(planner.solve, TerminationCondition(None, None, args.budget),
@@ -47,6 +55,8 @@ def main(argv: list[str] | None = None) -> dict:
                   a["solves"], flush=True)
             if a["first_solution_cost"] is not None:
                 rows[name].append((a["first_solution_cost"], p.path_cost, a["solves"]))
+                if cheapest is None or p.path_cost < cheapest.path_cost:
+                    cheapest = p
     out = {}
     for name, r in rows.items():
         first = statistics.median(x[0] for x in r)
@@ -60,6 +70,11 @@ def main(argv: list[str] | None = None) -> dict:
             row["gap_closed"] = round((first - best) / (first - args.optimum), 4)
         out[name] = row
         print(f"{name}: " + " ".join(f"{k}={v}" for k, v in row.items()), flush=True)
+    if args.path_out and cheapest is not None:
+        sp = sample_path(m.system, cheapest)
+        np.savez(args.path_out, t=sp["t"], state=sp["state"], input=sp["input"],
+                 cost=cheapest.path_cost)
+        print(f"cheapest path ({cheapest.path_cost:.6g}) -> {args.path_out}")
     print(json.dumps(out))
     return out
 

@@ -8,7 +8,7 @@ system's box in the non-angle coordinates, input limits); w = 1.
 
     python bench/collocation.py [--problems NAME,...] [--n-intervals N] [--durations 2,4,8]
                                 [--search-intervals M] [--refine-best K]
-                                [--turns -1,0,1] [--json FILE]
+                                [--turns -1,0,1] [--json FILE] [--path-file NPZ]
 
 Prints one line per problem (cost, T, N, guesses, CPU, re-simulation errors) and, with
 --json, writes every result's summary and attempts.
@@ -104,6 +104,9 @@ def main(argv=None) -> None:
     ap.add_argument("--path-from", default=None,
                     help="solve this problem first (same settings) and add its solution as "
                          "the path guess of every problem (e.g. a tighter input bound's)")
+    ap.add_argument("--path-file", default=None,
+                    help="a path guess for every problem: an npz of t, state, input (a "
+                         "planner's path, e.g. bench/anytime_systems.py --path-out)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     table = problems()
@@ -117,6 +120,10 @@ def main(argv=None) -> None:
                                **_options(args, durations))
         print(f"path guess: {args.path_from}, cost {seed.cost:.6g}, T {seed.duration:.4g} s, "
               f"N {seed.n_intervals}, {seed.status}", flush=True)
+    if args.path_file:
+        with np.load(args.path_file) as f:
+            seed = (f["t"], f["state"], f["input"][:-1])
+        print(f"path guess: {args.path_file}, T {float(seed[0][-1]):.4g} s", flush=True)
     for name in args.problems.split(","):
         make_problem, goal_distance, durations = table[name]
         if args.durations:
