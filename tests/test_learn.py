@@ -114,3 +114,42 @@ def test_learned_functions_save_and_load_without_pickle(tmp_path):
     (tmp_path / "g.npz").write_bytes(bytes(raw))
     with pytest.raises(ArtefactError):
         LearnedFunctions.load(tmp_path / "g.npz")
+
+
+def test_compiled_knn_answers_are_numpys():
+    """`_mean_cost`, `_mean_steer` and `_covered` (compiled, for a planner's few rows) give
+    the numbers of the numpy formulas they replace, to the bit."""
+    from rrtcolearn.learn.models import _covered, _mean_cost, _mean_steer
+
+    rng = np.random.default_rng(0)
+    targets = np.column_stack([rng.uniform(-np.pi, np.pi, 500), rng.uniform(0, 2, 500)])
+    cost = rng.uniform(0, 3, 500)
+    idx = rng.integers(0, 500, size=(40, 3))
+    np.testing.assert_array_equal(_mean_cost(cost, idx, 1e-5, 2.0),
+                                  np.clip(cost[idx].mean(axis=1), 1e-5, 2.0))
+    low, period = np.array([-np.pi, 0.0]), np.array([2 * np.pi, 0.0])
+    angle = 2.0 * np.pi * (targets[:, :1] - low[0]) / period[0]
+    cos_, sin_ = np.cos(angle), np.sin(angle)
+    expect = targets[idx].mean(axis=1)
+    mean = np.arctan2(sin_[idx].mean(axis=1), cos_[idx].mean(axis=1))[:, 0]
+    val = low[0] + np.mod(mean, 2.0 * np.pi) * period[0] / (2.0 * np.pi)
+    expect[:, 0] = np.where(val >= low[0] + period[0], low[0], val)
+    from rrtcolearn.learn.models import SteeringRegressor
+
+    steer = SteeringRegressor(3, circular=(True,), low=(-np.pi,), high=(np.pi,))
+    steer.fit(rng.random((500, 4)), targets)
+    np.testing.assert_array_equal(steer.predict_from_neighbours(None, idx), expect)
+    out, cm, sm = _mean_steer(targets, cos_, sin_, idx)
+    np.testing.assert_array_equal(out[:, 1], targets[idx, 1].mean(axis=1))
+    np.testing.assert_array_equal(cm, cos_[idx].mean(axis=1))
+    np.testing.assert_array_equal(sm, sin_[idx].mean(axis=1))
+    grid = rng.random((6, 7, 5)) < 0.5
+    lo, cell = np.array([-1.0, -2.0, 0.5]), 0.4
+    X = rng.uniform(-2.0, 3.5, size=(300, 3))
+    X[0, 1] = np.nan
+    c = np.floor((X - lo) / cell)
+    inside = ((c >= 0) & (c < grid.shape)).all(axis=1)
+    flat = np.where(inside, np.nan_to_num(c, nan=0).astype(np.int64) @ grid.strides, 0)
+    np.testing.assert_array_equal(
+        _covered(X, lo, cell, np.array(grid.shape), np.array(grid.strides), grid.ravel()),
+        inside & grid.ravel()[flat])

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 from typing import TYPE_CHECKING
 
+import numba
 import numpy as np
 
 from rrtcolearn.data.store import load_arrays, save_arrays
@@ -44,6 +45,65 @@ class _KNNBase:
         return self.predict_from_neighbours(*self.kneighbors(X))
 
 
+# The k-NN answers for the few rows a planner iteration asks, compiled: numpy's fancy
+# indexing and reductions cost tens of microseconds on such arrays. The sums run over the
+# neighbours in order, as numpy's mean over that axis does, so the answers are the same
+# numbers.
+
+
+@numba.njit(cache=True)
+def _mean_cost(cost, idx, low, high):
+    """(Q,) the mean of ``cost`` over each row's neighbours ``idx`` (Q, m), clipped."""
+    q, m = idx.shape
+    out = np.empty(q)
+    for r in range(q):
+        s = cost[idx[r, 0]]
+        for t in range(1, m):
+            s += cost[idx[r, t]]
+        out[r] = min(max(s / m, low), high)
+    return out
+
+
+@numba.njit(cache=True)
+def _mean_steer(targets, cos_, sin_, idx):
+    """The neighbours' means (over ``idx`` (Q, m)) of ``targets`` (Q, k) and of the circular
+    columns' unit vectors ``cos_``, ``sin_`` (Q, c each)."""
+    q, m = idx.shape
+    out = np.empty((q, targets.shape[1]))
+    cos_mean, sin_mean = np.empty((q, cos_.shape[1])), np.empty((q, cos_.shape[1]))
+    for r in range(q):
+        for j in range(targets.shape[1]):
+            s = targets[idx[r, 0], j]
+            for t in range(1, m):
+                s += targets[idx[r, t], j]
+            out[r, j] = s / m
+        for j in range(cos_.shape[1]):
+            sc, ss = cos_[idx[r, 0], j], sin_[idx[r, 0], j]
+            for t in range(1, m):
+                sc += cos_[idx[r, t], j]
+                ss += sin_[idx[r, t], j]
+            cos_mean[r, j], sin_mean[r, j] = sc / m, ss / m
+    return out, cos_mean, sin_mean
+
+
+@numba.njit(cache=True)
+def _covered(X, lo, cell, dims, strides, flat):
+    """(Q,) whether each query's cell (of size ``cell`` from ``lo``) lies in the grid of
+    ``dims`` and is set in ``flat`` (the grid's bytes, ``strides`` per coordinate); a
+    coordinate outside the grid, or NaN, is not covered."""
+    out = np.zeros(X.shape[0], dtype=np.bool_)
+    for r in range(X.shape[0]):
+        offset = 0
+        for j in range(X.shape[1]):
+            c = np.floor((X[r, j] - lo[j]) / cell)
+            if not (c >= 0.0 and c < dims[j]):
+                break
+            offset += np.int64(c) * strides[j]
+        else:
+            out[r] = flat[offset]
+    return out
+
+
 class CostToGoRegressor(_KNNBase):
     """J(x0, x1): mean cost of the m nearest training inputs, saturated to ``bounds``.
 
@@ -61,7 +121,8 @@ class CostToGoRegressor(_KNNBase):
         return self
 
     def predict_from_neighbours(self, dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        return np.clip(self.cost_[idx].mean(axis=1), *self.bounds)
+        return _mean_cost(self.cost_, np.ascontiguousarray(idx, dtype=np.int64),
+                          *map(float, self.bounds))
 
 
 class SteeringRegressor(_KNNBase):
@@ -94,10 +155,12 @@ class SteeringRegressor(_KNNBase):
         return self
 
     def predict_from_neighbours(self, dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        out = self.targets_[idx].mean(axis=1)
+        out, cos_mean, sin_mean = _mean_steer(self.targets_, self.cos_, self.sin_,
+                                              np.ascontiguousarray(idx, dtype=np.int64))
         c = self.circular_
         if c.any():
-            mean = np.arctan2(self.sin_[idx].mean(axis=1), self.cos_[idx].mean(axis=1))
+            # numpy's arctan2 (vectorised, not libm's: they differ in the last bit)
+            mean = np.arctan2(sin_mean, cos_mean)
             val = self.low_[c] + np.mod(mean, 2.0 * np.pi) * self.period_[c] / (2.0 * np.pi)
             # mod rounds a tiny negative angle up to 2 pi, which lands on high: wrap to low
             out[:, c] = np.where(val >= self.low_[c] + self.period_[c], self.low_[c], val)
@@ -143,10 +206,9 @@ class ValidityClassifier(_KNNBase):
         """(Q,) False only where the query is certainly invalid; cheap, used to prune."""
         if self.coverage_ is None:
             return np.ones(len(X), dtype=bool)
-        c = np.floor((X - self.coverage_lo_) / self.coverage_cell_).astype(np.int64)
-        inside = ((c >= 0) & (c < self._coverage_dims)).all(axis=1)
-        flat = np.where(inside, c @ self._coverage_strides, 0)
-        return inside & self._coverage_flat[flat]
+        return _covered(np.ascontiguousarray(X, dtype=np.float64), self.coverage_lo_,
+                        float(self.coverage_cell_), self._coverage_dims,
+                        self._coverage_strides, self._coverage_flat)
 
     def predict_from_neighbours(self, dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
         return dist.sum(axis=1) <= self.threshold
