@@ -210,10 +210,10 @@ class NeuralRegressor:
         X = np.ascontiguousarray(X, dtype=np.float64)
         if X.ndim != 2 or X.shape[1] != self.n_features_in_:
             raise ValueError(f"X must be (Q, {self.n_features_in_}), got shape {X.shape}")
-        if not hasattr(self, "_layers"):
-            self._layers = (tuple(self.coefs_), tuple(self.intercepts_))
-        z = _forward_rows(X, self.x_mean_, self.x_std_, *self._layers,
-                          float(self.z_std_[0]), float(self.z_mean_[0]))
+        # the layers as tuples on every call (a cache could outlive a refit)
+        z = _forward_rows(X, self.x_mean_, self.x_std_, tuple(self.coefs_),
+                          tuple(self.intercepts_), float(self.z_std_[0]),
+                          float(self.z_mean_[0]))
         return np.exp(z) if self.log_target else z
 
     # ------------------------------------------------------------ serialisation
