@@ -1,18 +1,22 @@
-"""The simplest anytime planner: solve again with fresh seeds, keep the cheapest path.
+"""Anytime planning: solve again with fresh seeds, improve each path, keep the cheapest.
 
 Every planner (RRT-CoLearn and every peer) returns its first solution. `solve_with_restarts`
 takes one planner's solve of one problem, ``solve(termination, seed) -> Plan`` (`RRTCoLearn`'s
 own ``solve``, or ``lambda t, s: peer.solve(problem, t, s)`` for a `rrtcolearn.planners`
 peer), and spends the rest of the budget on further solves with child seeds of the query's
-seed and returns the cheapest solved plan, with its best cost
-against planning CPU recorded in ``plan.extra["anytime"]`` (OMPL's progress properties, the
-data a best-cost-over-time figure is drawn from). It is the baseline an anytime scheme that
-improves one tree (rewiring, pruning) has to beat at equal CPU.
+seed. Each solved path may be passed through ``improve`` (``plan.anytime`` uses
+`planning.improve.shortcut`: the path's tail replaced by single extremals or LQR chains to the
+goal, in the same tree), within an allowance of the CPU its solve took, shrinking where
+improving does not pay. It returns the cheapest solved plan, with its best cost against
+planning CPU recorded in ``plan.extra["anytime"]`` (OMPL's progress properties, the data a
+best-cost-over-time figure is drawn from). Without ``improve`` it is the restart baseline an
+anytime scheme has to beat at equal CPU (docs/anytime.md).
 
 The first solve uses the query's own seed, so the first solution, and the time to it, are a
 plain solve's. With an iteration budget (``TerminationCondition.max_iterations``: the
-iterations of all solves together) the result depends on the seed only; with a time budget it
-depends, as every anytime planner's does, on how fast the machine ran.
+iterations of all solves together, and one per node an improvement tries) the result depends
+on the seed only; with a time budget it depends, as every anytime planner's does, on how fast
+the machine ran.
 """
 
 from __future__ import annotations
