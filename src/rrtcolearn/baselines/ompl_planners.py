@@ -220,11 +220,11 @@ class OMPLPlanner:
 
         def is_valid(state) -> bool:
             counts["validity_calls"] += 1
-            x = [state[j] for j in range(n)]
             # chained comparisons are False for NaN, so non-finite states are invalid too
-            if not all(a <= v <= b for a, v, b in zip(cl, x, ch, strict=True)):
-                return False
-            return obstacle_free is None or obstacle_free(x)
+            for j in range(n):
+                if not cl[j] <= state[j] <= ch[j]:
+                    return False
+            return obstacle_free is None or obstacle_free([state[j] for j in range(n)])
 
         # OMPL calls the propagator for every step of every edge: with the system's compiled
         # kernel it is called directly on buffers filled in place (a third of the CPU of
