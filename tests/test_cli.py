@@ -344,3 +344,22 @@ def test_plan_anytime_writes_its_progress(tiny_run, tmp_path):
     a = json.loads(out.read_text())["anytime"]
     assert a["scheme"] == "restarts+shortcut" and a["solves"] >= 1
     assert "anytime_solves" in result.output
+
+
+def test_progress_is_lines_on_stderr_without_a_terminal(capsys):
+    """Without a terminal (a log, a pipe, a batch job) long work reports plain lines on
+    stderr, at most one per interval, the first after one interval: short work prints
+    nothing."""
+    from rrtcolearn.cli import _LineProgress, _progress
+
+    assert isinstance(_progress(), _LineProgress)  # pytest's output is no terminal
+    quiet = _LineProgress(every=3600.0)
+    quiet.advance(quiet.add_task("fast", total=5), 5)
+    assert capsys.readouterr().err == ""
+    p = _LineProgress(every=0.0)
+    with p:
+        t = p.add_task("generate", total=10)
+        p.advance(t, 3)
+        p.update(t, description="clean", completed=7)
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].endswith("generate: 3/10") and err[1].endswith("clean: 7/10")

@@ -185,7 +185,53 @@ def _run_dir(out: Path | None, cfg: Config) -> Path:
     return run_dir
 
 
-def _progress() -> Progress:
+class _LineProgress:
+    """Progress where no bar can be drawn (output to a log or a pipe): a plain line on
+    stderr at most every ``every`` seconds, the first after ``every`` seconds, so that short
+    work prints nothing and a long run in a batch job is not silent. The part of rich's
+    ``Progress`` the commands use."""
+
+    def __init__(self, every: float = 30.0):
+        self.every = every
+        self.tasks: list[list] = []  # [description, completed, total]
+        self.t0 = self.last = time.monotonic()
+
+    def __enter__(self) -> _LineProgress:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def add_task(self, description: str, total: float | None = None) -> int:
+        self.tasks.append([description, 0, total])
+        return len(self.tasks) - 1
+
+    def update(self, task: int, description: str | None = None,
+               completed: float | None = None, total: float | None = None) -> None:
+        t = self.tasks[task]
+        for i, v in ((0, description), (1, completed), (2, total)):
+            if v is not None:
+                t[i] = v
+        self._line(task)
+
+    def advance(self, task: int, advance: float = 1) -> None:
+        self.tasks[task][1] += advance
+        self._line(task)
+
+    def _line(self, task: int) -> None:
+        now = time.monotonic()
+        if now - self.last < self.every:
+            return
+        self.last = now
+        what, done, total = self.tasks[task]
+        count = f": {done:g}/{total:g}" if total else ""
+        print(f"[{now - self.t0:.0f} s] {what}{count}", file=sys.stderr, flush=True)
+
+
+def _progress() -> Progress | _LineProgress:
+    """A progress bar on a terminal, else `_LineProgress`'s occasional lines."""
+    if not console.is_terminal and not _state.get("force_progress"):
+        return _LineProgress()
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -196,8 +242,7 @@ def _progress() -> Progress:
     )
 
     return Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
-                    MofNCompleteColumn(), TimeElapsedColumn(), console=console,
-                    disable=not console.is_terminal and not _state.get("force_progress"))
+                    MofNCompleteColumn(), TimeElapsedColumn(), console=console)
 
 
 def _do_generate(cfg: Config, run_dir: Path, settings=None) -> dict:
