@@ -10,7 +10,8 @@ planner's (same seed) in both. The reference optimum is the collocation
 (`baselines.collocation.problem_optimum`, CasADi + IPOPT, 60 intervals) to the planner's own
 goal ball, free final time up to 15 s, from the straight-line guess at several initial
 durations and from the cheapest path the schemes found: the cheapest converged solution.
-The optimum to the goal point (`baselines.direct`) is printed beside it.
+The optimum to the goal point (the same collocation, state bounds lifted) is printed beside
+it.
 
 Beside it, OMPL's RRT's first solution on the same problem (where OMPL is installed and the
 problem has an input box: u_max = 2), its path priced with w + u^2/2 by re-simulation
@@ -49,21 +50,20 @@ INITIAL_DURATIONS = (2.0, 4.0, 6.0, 8.0, 10.0, 12.0)
 SCHEMES = {"restarts": None, "restarts+shortcuts": shortcut}
 
 
-def collocation_optimum(u_max: float | None, w: float = 1.0) -> float | None:
-    """The pendulum's collocation optimum to the goal point (`baselines.direct`): the
-    cheapest converged swing-up over the initial durations (None without CasADi)."""
-    from rrtcolearn.baselines.direct import casadi_available, get_solver
+def point_optimum(system, u_max: float | None, w: float = 1.0) -> float | None:
+    """The collocation optimum to the goal point (`baselines.collocation.optimal_cost`, state
+    bounds lifted), the cheapest over straight-line guesses of INITIAL_DURATIONS (None without
+    CasADi or a converged solve)."""
+    from rrtcolearn.baselines.collocation import optimal_cost
+    from rrtcolearn.baselines.direct import casadi_available
 
     if not casadi_available():
         return None
-    solver = get_solver()
-    best = None
-    for t0 in INITIAL_DURATIONS:
-        sol = solver.solve(START, GOAL, time_weight=w, u_max=u_max, t_max=15.0,
-                           retry_durations=(t0,))
-        if sol.success and (best is None or sol.cost < best):
-            best = sol.cost
-    return best
+    free = [np.inf] * len(START)
+    r = optimal_cost(system, START, GOAL, time_weight=w, u_max=u_max, n_intervals=60,
+                     durations=INITIAL_DURATIONS, t_max=15.0, state_low=[-v for v in free],
+                     state_high=free)
+    return float(r.cost) if r.success else None
 
 
 def ball_optimum(problem, plan, w: float = 1.0) -> tuple[float | None, str | None]:
@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> dict:
     for name, u_max in (("unbounded", None), ("u_max 2", 2.0)):
         problem = pipeline.make_problem(system, cfg, START, GOAL, TOLERANCE, u_max=u_max)
         planner = RRTCoLearn(problem, model.functions, model.planner_settings())
-        point = collocation_optimum(u_max)
+        point = point_optimum(system, u_max)
         ompl = ompl_first_costs(problem, args.queries)
         cheapest = None  # the cheapest path any scheme found: a guess of the ball optimum
         # (first, best, first CPU, solves, progress) per scheme; the schemes alternate query

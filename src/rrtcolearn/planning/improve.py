@@ -33,7 +33,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rrtcolearn.planning.shooting import shoot
 from rrtcolearn.planning.tree import Plan, PlannerData
 
 if TYPE_CHECKING:
@@ -90,22 +89,16 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
         if can_shoot and planner.model is not None:
             # U's guess where J says the edge may be cheaper (V's verdict is not asked: far
             # from the data U's guess still converges often enough to pay)
-            sh = sys.wrap_shift(x0[None])[0]
-            offset = prob.goal_offset(x0[None])[0]
-            query = np.concatenate([x0 + sh, x0 - offset + sh])[None]
+            query = planner._goal_query(x0, sys.wrap_shift(x0[None])[0],
+                                        prob.goal_offset(x0[None])[0])
             j, u, _ = (a[0] for a in planner.model.query(query))
             if come[pos] + j < best:
                 guesses.append((u[:-1], min(max(u[-1], s.dt), budget)))
         for params, duration in guesses:
             shots += 1
-            res = shoot(sys, x0, params, duration, prob.goal_residual, time_weight=w,
-                        dt=s.dt, max_duration=max(budget, s.dt),
-                        tolerance=0.25 * prob.goal_tolerance, max_iterations=20)
-            if res is not None:
-                edge = planner._goal_edge(x0, np.append(res.params, res.steps * s.dt), lam,
-                                          z0)
-                if edge is not None:
-                    tails.append([edge])
+            edge = planner._shoot_edge(x0, params, duration, max(budget, s.dt), lam, z0)
+            if edge is not None:
+                tails.append([edge])
         if lqr is not None:
             loops += 1
             chain, _ = planner._lqr_chain(lqr, x0)
@@ -125,7 +118,6 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
     if not added:
         plan.extra["shortcuts"] = record
         return plan
-    region = prob.goal_fn is not None or prob.goal_weights is not None
     return replace(plan, path_nodes=path,
-                   end_goal_distance=float(prob.goal_distance(tree.states[path[-1]])[0])
-                   if region else None, extra={**plan.extra, "shortcuts": record})
+                   end_goal_distance=planner._end_goal_distance(tree.states[path[-1]]),
+                   extra={**plan.extra, "shortcuts": record})

@@ -660,9 +660,7 @@ class RRTCoLearn:
             return None
         tried[node] = True
         x0 = states[node]
-        sh = shifts[node]
-        query = np.concatenate([x0 + sh, x0 - offset[node] + sh])[None]
-        guess = self.model.query(query)[1][0]
+        guess = self.model.query(self._goal_query(x0, shifts[node], offset[node]))[1][0]
         for factor in (1.0, 2.0, 4.0, 8.0):
             duration = min(max(guess[-1], s.dt) * factor, s.max_duration)
             edge = self._shoot_edge(x0, guess[:-1], duration, s.max_duration, lam, z0)
@@ -671,6 +669,19 @@ class RRTCoLearn:
             if duration >= s.max_duration:
                 break
         return None
+
+    def _goal_query(self, x0: np.ndarray, shift: np.ndarray, offset: np.ndarray) -> np.ndarray:
+        """The learning query (1, 2n) from ``x0`` to the goal: both ends shifted by whole
+        turns (``shift``) into the box, the goal as ``x0 - offset`` (angles the short way)."""
+        return np.concatenate([x0 + shift, x0 - offset + shift])[None]
+
+    def _end_goal_distance(self, state: np.ndarray) -> float | None:
+        """A plan's ``end_goal_distance``: the goal test's distance of its end ``state`` to a
+        goal region (a user function or weighted coordinates); None for a plain ball."""
+        prob = self.problem
+        if prob.goal_fn is None and prob.goal_weights is None:
+            return None
+        return float(prob.goal_distance(state)[0])
 
     def _shoot_edge(self, x0: np.ndarray, params: np.ndarray, duration: float,
                     max_duration: float, lam: np.ndarray, z0: np.ndarray):
@@ -1145,7 +1156,6 @@ class RRTCoLearn:
             dist = prob.goal_distance(tree.states[: tree.n_nodes])
             end = int(np.argmin(dist))
             status = "approximate" if end != 0 else "timeout"
-        region = prob.goal_fn is not None or prob.goal_weights is not None
         input_low, input_high = sys.input_limits() if sys.input_limited else (None, None)
         search = run.search
         lqr = run.lqr
@@ -1165,8 +1175,7 @@ class RRTCoLearn:
             u_max=prob.u_max, input_low=input_low, input_high=input_high,
             obstacles=[o.to_dict() for o in prob.validity.obstacles],
             goal_angles=prob.goal_angles,
-            end_goal_distance=float(prob.goal_distance(tree.states[end])[0]) if region
-            else None,
+            end_goal_distance=self._end_goal_distance(tree.states[end]),
             # which edge reached the goal: the learned steering's, or a connection's
             extra={**({"goal_connected": run.connection is not None,
                        "connection": run.connection,
