@@ -78,3 +78,16 @@ def test_wrong_format_and_version_are_refused(tmp_path):
     np.savez(path, a=np.zeros(2), __meta__=np.array(json.dumps(meta)))
     with pytest.raises(ArtefactError, match="schema version"):
         load_arrays(path, "rrtcolearn.test")
+
+
+def test_a_zip_version_zipfile_does_not_implement_is_a_clear_error(tmp_path):
+    """A damaged header naming zip version 10.9 made zipfile raise NotImplementedError, which
+    escaped as a traceback (found by the fuzz test)."""
+    buf = io.BytesIO()
+    np.savez(buf, a=np.arange(3))
+    raw = bytearray(buf.getvalue())
+    raw[raw.find(b"PK\x01\x02") + 6] = 109  # central directory: version needed to extract
+    path = tmp_path / "d.npz"
+    path.write_bytes(bytes(raw))
+    with pytest.raises(ArtefactError, match="truncated or corrupt"):
+        load_arrays(path, "rrtcolearn.dataset")

@@ -132,7 +132,9 @@ def load_arrays(path: str | os.PathLike, fmt: str) -> tuple[dict[str, np.ndarray
     try:
         with np.load(path, allow_pickle=False) as npz:
             arrays = {k: npz[k] for k in npz.files}
-    except (zipfile.BadZipFile, EOFError, OSError, KeyError) as exc:
+    # a damaged zip header can also name a zip version or compression method that zipfile
+    # does not implement (NotImplementedError)
+    except (zipfile.BadZipFile, EOFError, OSError, KeyError, NotImplementedError) as exc:
         raise ArtefactError(f"{path} is not a readable {fmt} file (truncated or corrupt: "
                             f"{exc})") from None
     except ValueError as exc:  # object arrays need pickle, which is refused
