@@ -209,3 +209,51 @@ def test_the_compiled_choice_is_the_general_one(limited, directed):
         assert (a.steps, a.cost, a.u_abs, a.hit, a.end_distance) == \
             (b.steps, b.cost, b.u_abs, b.hit, b.end_distance)
     assert hits > 0  # the goal test was exercised
+
+
+def _tree_of(plan) -> tuple:
+    t = plan.tree
+    n = t.n_nodes
+    return (n, plan.iterations, plan.status, t.states[:n].tobytes(), t.parents[:n].tobytes(),
+            t.controls[:n].tobytes(), t.costs[:n].tobytes(), t.durations[:n].tobytes(),
+            t.max_abs_u[:n].tobytes(), np.isnan(t.costates[:n]).tobytes(),
+            b"".join(np.ascontiguousarray(a).tobytes() for a in t.trajectories),
+            repr(sorted(plan.extra.items())))
+
+
+@pytest.mark.parametrize("goal", ["ball", "function"])
+def test_the_compiled_iterations_are_the_python_ones(limited, goal):
+    """While random controls explore, the iterations up to the next goal-biased one run
+    compiled (`RRTCoLearn._explore`); with the same seed the tree, its trajectories, the
+    iteration count and the outcomes are the Python loop's, for a goal ball (tested in the
+    kernel) and for a user's goal function (tested after each batch, the batch cut at the
+    first edge that reaches the region)."""
+    from rrtcolearn.planning.rrt import RRTCoLearn
+    from rrtcolearn.planning.termination import TerminationCondition
+
+    goal_fn = None
+    if goal == "function":
+        def goal_fn(x):  # a ball about (0, 0) in the plain coordinates, written by a user
+            return np.hypot(np.mod(x[:, 0] + np.pi, 2 * np.pi) - np.pi, x[:, 1])
+    problem = pipeline.make_problem(limited.system, limited.config, [-np.pi, 0.0],
+                                    [0.0, 0.0], 0.1, goal_fn=goal_fn)
+    settings = limited.planner_settings(_with(limited, control_edges=True))
+    compiled = RRTCoLearn(problem, limited.functions, settings)
+    python = RRTCoLearn(problem, limited.functions, settings)
+    python._explore_consts = lambda: None  # every iteration in Python
+    batches = []  # per compiled batch: whether it reached the goal
+    explore = compiled._explore
+
+    def counted(rng, run, budget):
+        pending = explore(rng, run, budget)
+        batches.append(run.goal_node >= 0)
+        return pending
+    compiled._explore = counted
+    solved = 0
+    for seed in range(4):
+        for budget in (40, 5000):  # stopped by the budget mid-batch, and run to the goal
+            a = compiled.solve(TerminationCondition(None, budget), seed)
+            b = python.solve(TerminationCondition(None, budget), seed)
+            assert _tree_of(a) == _tree_of(b)
+            solved += a.solved
+    assert solved >= 3 and any(batches)  # some plans end in a batch's edge

@@ -217,12 +217,165 @@ def closed_loop_jit(x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps, low,
             return states[: s + 1], inputs[:s], 1
         inputs[s] = u
     return states, inputs, 0
+
+
+@_numba.njit(cache=True)
+def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, states,
+                parents, controls, durations, costs, max_abs_u, shifts, R):
+    # the planner's random-control iterations that are not goal-biased, compiled
+    # (planning/rrt.py, RRTCoLearn._explore): each draws the goal bias, a uniform target,
+    # its nearest node (index nearest_of, angles modulo a turn), a uniform input held for
+    # 1..longest steps, and adds the node at the draw's last state inside the constraint
+    # box, or (ball) at its first state in the goal ball. The numbers are those of the
+    # Python iteration (same generator calls in the same order, same arithmetic).
+    # ints: budget, iterations, last_growth, stall, longest, ball, n_index, nearest_of, size
+    # floats: dt, goal_bias, tol2, w
+    # boxes (8, n): sample low/high, constraint low/high, input low/high (first m
+    # columns), the shift's low, angle coordinates (1.0) for the shift
+    # goal (3, n): goal, weights, angle coordinates (1.0) of the ball test
+    # index_consts (2, 4, n): per node index its weight, low, period, angle mask (1.0)
+    budget, iterations, last_growth, stall, longest, ball, n_index, nearest_of, size = \
+        ints[0], ints[1], ints[2], ints[3], ints[4], ints[5], ints[6], ints[7], ints[8]
+    dt, goal_bias, tol2, w = floats[0], floats[1], floats[2], floats[3]
+    n = states.shape[1]
+    m = controls.shape[1]
+    k1 = _np.empty(n)
+    k2 = _np.empty(n)
+    k3 = _np.empty(n)
+    k4 = _np.empty(n)
+    tmp = _np.empty(n)
+    q = _np.empty(n)
+    u = _np.empty(m)
+    traj = _np.empty((max(16, 4 * (longest + 1)), n))
+    used = 0
+    starts = _np.empty(budget + 1, _np.int64)
+    node_it = _np.empty(budget, _np.int64)
+    ends = _np.empty(budget)
+    reasons = _np.zeros(budget, _np.int64)
+    node = size
+    code = 0
+    done = 0
+    pts = points1 if nearest_of == 1 else points0
+    while done < budget:
+        if stall > 0 and iterations - last_growth >= stall:
+            code = 2
+            break
+        iterations += 1
+        done += 1
+        if rng.random() < goal_bias:
+            code = 1
+            reasons[done - 1] = 3
+            break
+        # target uniform in the sampling box, in the node index's coordinates
+        for j in range(n):
+            t = boxes[0, j] + (boxes[1, j] - boxes[0, j]) * rng.random()
+            y = t * index_consts[nearest_of, 0, j] - index_consts[nearest_of, 1, j]
+            if index_consts[nearest_of, 3, j] > 0.0:
+                y = _np.mod(y, index_consts[nearest_of, 2, j])
+                if y >= index_consts[nearest_of, 2, j]:
+                    y = 0.0
+            q[j] = y
+        parent = 0
+        best = 0.0
+        for r in range(node):
+            acc = 0.0
+            for j in range(n):
+                d = pts[r, j] - q[j]
+                p = index_consts[nearest_of, 2, j]
+                if p > 0.0:
+                    d = _np.mod(d + 0.5 * p, p) - 0.5 * p
+                acc += d * d
+            if r == 0 or acc < best:
+                parent, best = r, acc
+        for i in range(m):
+            u[i] = boxes[4, i] + (boxes[5, i] - boxes[4, i]) * rng.random()
+        length = rng.integers(1, longest + 1)
+        while used + length + 1 > traj.shape[0]:
+            grown = _np.empty((2 * traj.shape[0], n))
+            grown[:used] = traj[:used]
+            traj = grown
+        traj[used] = states[parent]
+        kept = 0
+        stop = 0
+        hit = False
+        last_d2 = 0.0
+        for s in range(length):
+            _rk4_plain_step(traj[used + kept], u, dt, k1, k2, k3, k4, tmp,
+                            traj[used + kept + 1])
+            inside = True
+            finite = True
+            for i in range(n):
+                v = traj[used + kept + 1, i]
+                inside = inside and boxes[2, i] <= v <= boxes[3, i]
+                finite = finite and _math.isfinite(v)
+            if not inside:
+                stop = 1 if finite else 2
+                break
+            kept += 1
+            if ball:
+                d2 = 0.0
+                for i in range(n):
+                    v = traj[used + kept, i] - goal[0, i]
+                    if goal[2, i] > 0.0:
+                        v = _np.mod(v + _np.pi, 2.0 * _np.pi) - _np.pi
+                    v *= goal[1, i]
+                    d2 += v * v
+                last_d2 = d2
+                if d2 <= tol2:
+                    hit = True
+                    break
+        if kept == 0:
+            reasons[done - 1] = stop
+            continue
+        x = traj[used + kept]
+        uru = 0.0
+        uabs = 0.0
+        for j in range(m):
+            acc = 0.0
+            for i in range(m):
+                acc += u[i] * R[i, j]
+            uru += acc * u[j]
+            uabs = max(uabs, abs(u[j]))
+        states[node] = x
+        parents[node] = parent
+        controls[node] = u
+        durations[node] = kept * dt
+        costs[node] = kept * dt * (w + 0.5 * uru)
+        max_abs_u[node] = uabs
+        for ii in range(n_index):
+            dest = points1 if ii == 1 else points0
+            for j in range(n):
+                y = x[j] * index_consts[ii, 0, j] - index_consts[ii, 1, j]
+                if index_consts[ii, 3, j] > 0.0:
+                    y = _np.mod(y, index_consts[ii, 2, j])
+                    if y >= index_consts[ii, 2, j]:
+                        y = 0.0
+                dest[node, j] = y
+        for j in range(n):
+            shifts[node, j] = 0.0
+            if boxes[7, j] > 0.0:
+                shifts[node, j] = -2.0 * _np.pi * _np.floor((x[j] - boxes[6, j])
+                                                            / (2.0 * _np.pi))
+        k = node - size
+        starts[k] = used
+        node_it[k] = iterations
+        ends[k] = _math.sqrt(last_d2)
+        used += kept + 1
+        node += 1
+        last_growth = iterations
+        if hit:
+            code = 3
+            break
+    starts[node - size] = used
+    k = node - size
+    return (code, iterations, node, traj[:used].copy(), starts[: k + 1].copy(),
+            node_it[:k].copy(), ends[:k].copy(), reasons[:done].copy())
 '''
 
 
 def define_kernels(namespace: dict) -> None:
-    """Compile ``rollout_jit``, ``rollout_batch_jit``, ``propagate_jit`` and
-    ``closed_loop_jit`` into a system module's namespace.
+    """Compile ``rollout_jit``, ``rollout_batch_jit``, ``propagate_jit``,
+    ``closed_loop_jit`` and ``explore_jit`` into a system module's namespace.
 
     The module must define compiled ``rhs(z, w, out)``, ``input_max_abs(z)`` and
     ``dynamics_jit(x, u, out)`` first.

@@ -89,9 +89,29 @@ class NodeIndex:
         self._points[self._size] = self._wrapped(np.asarray(x, dtype=np.float64))
         self._size += 1
         if self._size - self._indexed >= self.rebuild_every:
-            self._tree = cKDTree(self._points[: self._size].copy(),
-                                 boxsize=self._period if self._angles.size else None)
-            self._indexed = self._size
+            self._rebuild()
+
+    def reserve(self, k: int) -> np.ndarray:
+        """The points array with room for ``k`` more points, for a compiled caller to write
+        them in stored coordinates (`_wrapped`) before `commit`."""
+        while self._points.shape[0] < self._size + k:
+            self._points = np.concatenate([self._points, np.empty_like(self._points)])
+        return self._points
+
+    def commit(self, size: int) -> None:
+        """Take the points written into `reserve`'s array up to ``size`` as added."""
+        self._size = size
+        if self._size - self._indexed >= self.rebuild_every:
+            self._rebuild()
+
+    def set(self, i: int, x: np.ndarray) -> None:
+        """Replace the point ``i`` not yet committed (`reserve`)."""
+        self._points[i] = self._wrapped(np.asarray(x, dtype=np.float64))
+
+    def _rebuild(self) -> None:
+        self._tree = cKDTree(self._points[: self._size].copy(),
+                             boxsize=self._period if self._angles.size else None)
+        self._indexed = self._size
 
     def _wrapped(self, x: np.ndarray) -> np.ndarray:
         """Weighted coordinates, angles shifted by whole turns into [0, period)."""

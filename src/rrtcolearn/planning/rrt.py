@@ -302,6 +302,21 @@ class _LQRSearch:
         self.tried = _grown(self.tried, m, False)
 
 
+class _ExploreConsts(NamedTuple):
+    """What `integrate.explore_jit` takes that does not change during a solve."""
+
+    longest: int  # the most RK4 steps an input is held
+    tol2: float  # the goal ball's tolerance squared
+    boxes: np.ndarray  # (8, max(n, m)): the rows `integrate.explore_jit` names
+    goal: np.ndarray  # (3, n): the ball's goal, weights and angle coordinates (1.0)
+    index_consts: np.ndarray  # (indices, 4, n): each node index's weight, low, period, angles
+
+
+# the most iterations a compiled batch (`RRTCoLearn._explore`) runs before the termination
+# condition is asked again
+_BATCH = 256
+
+
 @dataclass
 class _Run:
     """What one `RRTCoLearn.solve` keeps between iterations."""
@@ -330,6 +345,7 @@ class _Run:
     failed_shots: int = 0
     last_growth: int = 0  # the iteration that last added a node
     stalled: bool = False
+    explore: _ExploreConsts | None = None  # the compiled iterations' constants, if they run
     tried: np.ndarray = field(default_factory=lambda: np.zeros(256, dtype=bool))
     switched: dict = field(default_factory=dict)  # when connections were switched on
     edges_by: dict = field(default_factory=lambda: {"learned": 0, "control": 0})
@@ -950,23 +966,129 @@ class RRTCoLearn:
         if run.best_goal <= prob.goal_tolerance:
             run.goal_node = 0
         while run.goal_node < 0 and not termination(run.iterations):
-            if s.stall_iterations and run.iterations - run.last_growth >= s.stall_iterations:
-                run.stalled = True
-                break
-            run.iterations += 1
-            run.since_growth_nearer += 1
-            if run.controls and not run.exploring and \
-                    run.since_growth_nearer >= CONTROLS_AFTER:
-                # the learned steering stalls: explore with random controls
-                run.exploring = True
-                run.switched["controls"] = run.iterations
-            to_goal = rng.random() < s.goal_bias
+            if run.exploring and run.explore is not None:
+                # the iterations up to the next goal-biased one, compiled
+                budget = _BATCH if termination.max_iterations is None else \
+                    min(_BATCH, termination.max_iterations - run.iterations)
+                if not self._explore(rng, run, budget):
+                    continue
+                to_goal = True  # the batch ended at a goal-biased iteration: its rest here
+            else:
+                if s.stall_iterations and \
+                        run.iterations - run.last_growth >= s.stall_iterations:
+                    run.stalled = True
+                    break
+                run.iterations += 1
+                run.since_growth_nearer += 1
+                if run.controls and not run.exploring and \
+                        run.since_growth_nearer >= CONTROLS_AFTER:
+                    # the learned steering stalls: explore with random controls
+                    run.exploring = True
+                    run.switched["controls"] = run.iterations
+                to_goal = rng.random() < s.goal_bias
             target = prob.sample_goal(rng) if to_goal else \
                 rng.uniform(sys.state_low, sys.state_high)
             if to_goal and self._connect(rng, run):
                 break
             self._expand(rng, run, target, to_goal)
         return self._result(run, time.thread_time() - cpu0, termination.elapsed())
+
+    def _explore(self, rng: np.random.Generator, run: _Run, budget: int) -> bool:
+        """Up to ``budget`` iterations compiled (`integrate.explore_jit`): the random-control
+        iterations that are not goal-biased, exactly as `solve` runs them (the same draws,
+        nodes and counts). Returns True when the last iteration drew the goal bias: its goal
+        target, connections and expansion are `solve`'s to run. Sets ``run.goal_node`` when a
+        node reached the goal region and ``run.stalled`` when the tree stalled."""
+        prob, s = self.problem, self.settings
+        tree, ex = run.tree, run.explore
+        size = tree.n_nodes
+        tree.reserve(budget)
+        points = [index.reserve(budget) for index in self._indices]
+        if run.shifts.shape[0] < size + budget:
+            run.shifts = _grown(run.shifts, size + budget, 0.0)
+        ints = np.array([budget, run.iterations, run.last_growth, s.stall_iterations,
+                         ex.longest, self._ball is not None, len(points),
+                         len(points) - 1, size], dtype=np.int64)
+        floats = np.array([s.dt, s.goal_bias, ex.tol2, s.time_weight])
+        code, iterations, nodes, traj, starts, node_it, ends, reasons = \
+            prob.system.explore_jit(rng, ints, floats, ex.boxes, ex.goal, ex.index_consts,
+                                    points[0], points[-1], tree.states, tree.parents,
+                                    tree.controls, tree.durations, tree.costs,
+                                    tree.max_abs_u, run.shifts, self._input_weight)
+        first_it = run.iterations
+        run.iterations = int(iterations)
+        added = nodes - size
+        if added and self._ball is None:  # the user's goal function on the new states
+            code, added, ends = self._deferred_goal(run, size, added, traj, starts, node_it,
+                                                    code)
+            if code == 3:  # the batch ends at that edge's iteration
+                run.iterations = int(node_it[added - 1])
+                reasons = reasons[: run.iterations - first_it]
+        if added:
+            rows = slice(size, size + added)
+            tree.costates[rows] = np.nan
+            tree.params[rows] = np.nan
+            tree.trajectories.extend(traj[a:b] for a, b in pairwise(starts[: added + 1]))
+            tree.n_nodes = size + added
+            run.last_growth = int(node_it[added - 1])
+            prev = np.minimum.accumulate(np.concatenate([[run.best_goal], ends]))[:-1]
+            nearer = np.flatnonzero(ends < prev)
+            if nearer.size:
+                run.best_goal = float(ends[nearer[-1]])
+                run.since_nearer = 0
+                run.since_growth_nearer = run.iterations - int(node_it[nearer[-1]])
+            else:
+                run.since_growth_nearer += run.iterations - first_it
+        else:
+            run.since_growth_nearer += run.iterations - first_it
+        for index in self._indices:
+            index.commit(size + added)
+        counts = np.bincount(reasons, minlength=4)
+        run.outcomes["added"] += int(counts[0])
+        run.outcomes["state_box"] += int(counts[1])
+        run.outcomes["nonfinite"] += int(counts[2])
+        run.edges_by["control"] += int(counts[0])
+        if code == 3:
+            run.goal_node = size + added - 1
+        elif code == 2:
+            run.stalled = True
+        return code == 1
+
+    def _deferred_goal(self, run: _Run, size: int, added: int, traj: np.ndarray,
+                       starts: np.ndarray, node_it: np.ndarray, code: int):
+        """The goal test of a compiled batch under the user's goal function: one call on
+        every new state; the batch is cut at the first edge that reaches the goal region
+        (that edge cut at its first state there, as `_control_edge` cuts it). Returns the
+        batch's code (3 when cut), how many of its nodes stay and their ends' distances."""
+        prob, s = self.problem, self.settings
+        n = prob.system.n_states
+        first = np.zeros(len(traj), dtype=bool)
+        first[starts[:-1]] = True  # each edge's first row is its parent's state
+        rows = np.flatnonzero(~first)
+        dist = prob.goal_distance(traj[rows])
+        hits = np.flatnonzero(dist <= prob.goal_tolerance)
+        last = starts[1 : added + 1] - 1  # each edge's last row
+        ends = dist[np.searchsorted(rows, last)]
+        if not hits.size:
+            return code, added, ends
+        row = int(rows[hits[0]])
+        e = int(np.searchsorted(starts, row, side="right")) - 1  # the edge of that row
+        steps = row - int(starts[e])
+        node = size + e
+        tree = run.tree
+        x = traj[row]
+        u = tree.controls[node]
+        tree.states[node] = x
+        tree.durations[node] = steps * s.dt
+        tree.costs[node] = steps * s.dt * (s.time_weight + 0.5 * float(
+            u @ self._input_weight @ u))
+        for index in self._indices:
+            index.set(node, x[:n])
+        run.shifts[node] = prob.system.wrap_shift(x[None])[0]
+        starts[e + 1] = row + 1
+        ends = ends[: e + 1].copy()
+        ends[e] = dist[hits[0]]
+        return 3, e + 1, ends
 
     def _start(self, rng: np.random.Generator) -> _Run:
         """The state of a new `solve`: the tree at the start, its node indices, the goal
@@ -991,6 +1113,7 @@ class RRTCoLearn:
         # shooting starts from U's guess: not without learned functions
         can_connect = sys.params_from_costate is not None and self.model is not None
         return _Run(
+            explore=self._explore_consts() if controls else None,
             tree=PlannerData(prob.start, sys.n_params, n_inputs=sys.n_inputs), weight=weight,
             plain=plain, wrapped=wrapped, shifts=shifts, lam=np.empty(n),
             z0=np.empty(2 * n + 1), controls=controls,
@@ -1002,6 +1125,27 @@ class RRTCoLearn:
             search=self._build_funnel(rng, weight, s.goal_funnel) if s.goal_funnel else None,
             lqr=self._build_lqr() if s.goal_lqr else None,
             best_goal=float(prob.goal_distance(prob.start)[0]))
+
+    def _explore_consts(self) -> _ExploreConsts | None:
+        """`_explore`'s constants, or None where its iterations stay in Python: a system
+        without compiled kernels, or obstacles (the validity checker is Python)."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        if sys.explore_jit is None or prob.validity:
+            return None
+        n, m = sys.n_states, sys.n_inputs
+        boxes = np.zeros((8, max(n, m)))
+        boxes[0, :n], boxes[1, :n] = sys.state_low, sys.state_high
+        boxes[2, :n], boxes[3, :n] = self._box
+        boxes[4, :m], boxes[5, :m] = self._control_box
+        boxes[6, :n] = sys.state_low
+        boxes[7, list(sys.angle_dims)] = 1.0
+        goal, tol2 = np.zeros((3, n)), 0.0
+        if self._ball is not None:
+            goal[0], goal[1], goal[2], tol2 = self._ball
+        consts = np.array([[index.weight, index._low, index._period,
+                            np.isin(np.arange(n), index._angles)] for index in self._indices],
+                          dtype=np.float64)
+        return _ExploreConsts(max(1, round(s.max_duration / s.dt)), tol2, boxes, goal, consts)
 
     def _connect(self, rng: np.random.Generator, run: _Run) -> bool:
         """A goal-biased iteration's exact connections (shooting, the funnel, the LQR

@@ -43,6 +43,11 @@ class PlannerData:
             new[: self.n_nodes] = old[: self.n_nodes]
             setattr(self, name, new)
 
+    def reserve(self, k: int) -> None:
+        """Room for ``k`` more nodes (for a compiled caller that writes them in place)."""
+        while self.states.shape[0] < self.n_nodes + k:
+            self._grow()
+
     def add(self, state, parent, costate, params, duration, cost, trajectory,
             max_abs_u, control=None) -> int:
         if self.n_nodes == self.states.shape[0]:

@@ -48,6 +48,8 @@ class System:
         (`rrtcolearn.integrate.propagate_draws`, `rrtcolearn.integrate.propagate`).
     closed_loop_jit : compiled RK4 of ``dynamics`` under a saturated linear feedback, the
         LQR goal connection's loop (`rrtcolearn.planning.lqr.GoalLQR.run`).
+    explore_jit : the planner's random-control iterations compiled with ``dynamics``
+        (`rrtcolearn.planning.rrt.RRTCoLearn._explore`).
     input_low, input_high : (m,) box of the inputs (+-inf where unbounded; None: no limits).
         With limits, u* is the minimiser of H over the box and every kernel above uses it
         (saturated optimal control, `rrtcolearn.systems.symbolic.limit_derivation`).
@@ -80,6 +82,7 @@ class System:
     input_high: np.ndarray | None = None
     propagate_jit: Callable | None = None
     closed_loop_jit: Callable | None = None
+    explore_jit: Callable | None = None
 
     @property
     def metric_scale(self) -> np.ndarray:
