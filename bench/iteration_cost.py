@@ -25,9 +25,11 @@ from rrtcolearn.planning.rrt import RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.systems import make
 
-# the parts of an iteration timed on their own: a learned expansion, a random-control one,
-# the goal connections of a goal-biased iteration
-_PARTS = {"_learned_iteration": "learned", "_control_edge": "control", "_connect": "connect"}
+# the parts of an iteration timed on their own: a learned expansion, a random-control one
+# (goal-biased: directed), a compiled batch of random-control iterations (up to the next
+# goal-biased one), the goal connections of a goal-biased iteration
+_PARTS = {"_learned_iteration": "learned", "_control_edge": "control",
+          "_explore": "compiled batch", "_connect": "connect"}
 
 
 class _Probe(TerminationCondition):

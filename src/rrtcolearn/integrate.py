@@ -219,6 +219,58 @@ def closed_loop_jit(x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps, low,
     return states, inputs, 0
 
 
+
+@_numba.njit(cache=True)
+def rollout_draws_jit(x0, lams, steps, w, dt, low, high, u_max):
+    # the learned steering's draws from x0 (planning/rrt.py, RRTCoLearn._rolled_draws):
+    # z = (x0, lams[c], 0) integrated for steps[c] RK4 steps as rollout_jit does, draw after
+    # draw into one array (starts (c + 1,) its rows), with |u*| at every row (input_max_abs)
+    # and a code per draw: 0 kept, 1 a state outside [low, high], 2 a value not finite (each
+    # stops the draw there), 3 |u*| above u_max (> 0) at its start (not integrated)
+    c_count, n = lams.shape
+    d = 2 * n + 1
+    total = 0
+    for c in range(c_count):
+        total += steps[c] + 1
+    traj = _np.empty((total, d))
+    u_all = _np.zeros(total)
+    starts = _np.empty(c_count + 1, _np.int64)
+    codes = _np.zeros(c_count, _np.int64)
+    k1 = _np.empty(d)
+    k2 = _np.empty(d)
+    k3 = _np.empty(d)
+    k4 = _np.empty(d)
+    tmp = _np.empty(d)
+    r = 0
+    for c in range(c_count):
+        starts[c] = r
+        for i in range(n):
+            traj[r, i] = x0[i]
+            traj[r, n + i] = lams[c, i]
+        traj[r, 2 * n] = 0.0
+        if u_max > 0.0 and input_max_abs(traj[r]) > u_max:
+            codes[c] = 3
+            continue
+        m = steps[c]
+        for s in range(m):
+            _rk4_step(traj[r + s], w, dt, k1, k2, k3, k4, tmp, traj[r + s + 1])
+            for i in range(n):
+                v = traj[r + s + 1, i]
+                if not (v >= low[i] and v <= high[i]):
+                    codes[c] = 1
+            for i in range(d):
+                if not _math.isfinite(traj[r + s + 1, i]):
+                    codes[c] = 2
+            if codes[c] != 0:  # rejected: the rest is not integrated
+                break
+        if codes[c] == 0:
+            for s in range(m + 1):
+                u_all[r + s] = input_max_abs(traj[r + s])
+        r += m + 1
+    starts[c_count] = r
+    return traj[:r], u_all[:r], starts, codes
+
+
 @_numba.njit(cache=True)
 def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, states,
                 parents, controls, durations, costs, max_abs_u, shifts, R):
@@ -375,7 +427,8 @@ def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, 
 
 def define_kernels(namespace: dict) -> None:
     """Compile ``rollout_jit``, ``rollout_batch_jit``, ``propagate_jit``,
-    ``closed_loop_jit`` and ``explore_jit`` into a system module's namespace.
+    ``closed_loop_jit``, ``rollout_draws_jit`` and ``explore_jit`` into a system module's
+    namespace.
 
     The module must define compiled ``rhs(z, w, out)``, ``input_max_abs(z)`` and
     ``dynamics_jit(x, u, out)`` first.
@@ -398,6 +451,46 @@ def rk4_step(f, x: np.ndarray, dt: float) -> np.ndarray:
     k3 = f(x + 0.5 * dt * k2)
     k4 = f(x + dt * k3)
     return x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def rollout_draws(system, x0: np.ndarray, lams: np.ndarray, steps: np.ndarray, w: float,
+                  dt: float, low: np.ndarray, high: np.ndarray, u_max: float | None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The state+costate+cost extremals from ``x0`` (n,) with the costates ``lams`` (c, n),
+    each for ``steps[c]`` RK4 steps (`rollout`), in one array: (rows (total, 2n+1), the
+    largest |u*_i| at each row, each draw's first row (c + 1,), a code per draw: 0 kept, 1
+    a state after the start outside ``low``/``high``, 2 a value not finite (the first such
+    state decides, and the draw is not integrated beyond it), 3 |u*| above ``u_max`` at the
+    start, not integrated). One compiled call for a planner's batch of draws."""
+    x0 = np.ascontiguousarray(x0, dtype=np.float64)
+    lams = np.ascontiguousarray(lams, dtype=np.float64)
+    steps = np.ascontiguousarray(steps, dtype=np.int64)
+    limit = -1.0 if u_max is None else float(u_max)
+    if system.rollout_draws_jit is not None:
+        return system.rollout_draws_jit(x0, lams, steps, float(w), float(dt), low, high, limit)
+    n = len(x0)  # a System built by hand: the same, draw by draw
+    parts, u_parts = [], []
+    starts, codes = np.zeros(len(lams) + 1, np.int64), np.zeros(len(lams), np.int64)
+    for c, (lam, m) in enumerate(zip(lams, steps, strict=True)):
+        z0 = np.concatenate([x0, lam, [0.0]])
+        if limit > 0.0 and system.input_max_abs_jit(z0) > limit:
+            codes[c], traj = 3, z0[None]
+        else:
+            traj = rollout(system, z0, w, dt, int(m))
+            bad = ~(np.all((traj[1:, :n] >= low) & (traj[1:, :n] <= high), axis=1)
+                    & np.isfinite(traj[1:]).all(axis=1))
+            if bad.any():  # the first such state decides, as the compiled loop stops there
+                codes[c] = 1 if np.isfinite(traj[1 + int(np.argmax(bad))]).all() else 2
+        u = np.zeros(len(traj))
+        if codes[c] == 0:
+            u = np.array([system.input_max_abs_jit(z) for z in traj])
+        if codes[c] != 3:
+            parts.append(traj)
+            u_parts.append(u)
+        starts[c + 1] = starts[c] + (len(traj) if codes[c] != 3 else 0)
+    d = 2 * n + 1
+    return (np.concatenate(parts) if parts else np.empty((0, d)),
+            np.concatenate(u_parts) if u_parts else np.empty(0), starts, codes)
 
 
 def propagate_draws(system, x0: np.ndarray, inputs: np.ndarray, lengths: np.ndarray,

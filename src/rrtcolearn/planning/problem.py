@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
 from rrtcolearn.errors import RRTCoLearnError
@@ -256,15 +255,3 @@ class PlanningProblem:
         x = self.goal.copy()
         x[free] = rng.uniform(self.state_low[free], self.state_high[free])
         return x
-
-
-@numba.njit(cache=True)
-def all_within(x, low, high):
-    """Whether every state (N, n) lies in [low, high] (n,) (NaN lies outside): with
-    `PlanningProblem.constraint_box` the test ``within_bounds(x).all()`` makes, in one
-    compiled pass that stops at the first state outside."""
-    for i in range(x.shape[0]):
-        for j in range(x.shape[1]):
-            if not (x[i, j] >= low[j] and x[i, j] <= high[j]):
-                return False
-    return True

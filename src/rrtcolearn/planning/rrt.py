@@ -14,12 +14,12 @@ from scipy.special import ndtr, ndtri
 from rrtcolearn import derive
 from rrtcolearn.config import Config, GenerateConfig, PlanConfig, SystemConfig
 from rrtcolearn.errors import ConfigError
-from rrtcolearn.integrate import propagate_draws, rollout
+from rrtcolearn.integrate import propagate_draws, rollout_draws
 from rrtcolearn.learn.models import LearnedFunctions, best_valid
 from rrtcolearn.planning.funnel import GoalFunnel
 from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
 from rrtcolearn.planning.nearest import NodeIndex
-from rrtcolearn.planning.problem import PlanningProblem, all_within
+from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.shooting import shoot
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan, PlannerData
@@ -249,19 +249,78 @@ def _pick_state(flat, counts, stops, goal, weights, angles, tol2, plain):
     return best_c, best_row, best_k, False, best_d
 
 
-class _Rolled(NamedTuple):
-    """A learned edge integrated and checked up to its goal test (`RRTCoLearn._roll_edge`):
-    its trajectory (steps + 1, 2n + 1), the states after the parent's (steps, n), where the
-    obstacles or the input limit cut it (``end`` states kept), |u*| at each state, the
-    steering parameters and the costate."""
 
-    traj: np.ndarray
-    path: np.ndarray
-    steps: int
-    end: int
-    u_all: np.ndarray
-    params: np.ndarray
-    costate: np.ndarray
+# `_summarise_draws`' codes as rejection reasons (0: kept); 1-3 are `integrate.rollout_draws`'
+_DRAW_REASONS = (None, "state_box", "nonfinite", "input_limit", "input_limit", "obstacle")
+
+
+@numba.njit(cache=True)
+def _summarise_draws(traj, starts, steps, codes, u_all, goal_hit, valid, u_max, cut,
+                     obstacles, aim, weight, directed):
+    """`RRTCoLearn._learned_iteration`'s edges of its draws (`integrate.rollout_draws`),
+    compiled: per draw, where it is cut (its first invalid state, with ``cut`` its first
+    |u*| above ``u_max``, its first state in the goal region: ``valid`` and ``goal_hit`` per
+    row), its steps, whether it reached the goal and its largest |u*|; draws rejected get
+    code 4 (an input above the limit) or 5 (an obstacle at the first step). ``directed``:
+    for a draw that does not reach the goal also its state nearest ``aim`` (weighted
+    distance squared, the first least), and the largest |u*| up to that state. Returns
+    (codes, steps, hit, u_abs, nearest index, its distance squared, u_abs to it)."""
+    count = codes.shape[0]
+    n = aim.shape[0]
+    codes = codes.copy()
+    out_steps = np.zeros(count, np.int64)
+    hit = np.zeros(count, np.bool_)
+    u_abs = np.zeros(count)
+    near = np.zeros(count, np.int64)
+    near_d2 = np.full(count, np.inf)
+    near_u = np.zeros(count)
+    for c in range(count):
+        if codes[c] != 0:
+            continue
+        r0 = starts[c] + 1  # the row of the draw's first state after its start
+        end = steps[c]
+        for p in range(steps[c]):
+            if not valid[r0 + p]:
+                end = p
+                break
+        if cut and u_max > 0.0:
+            for p in range(steps[c]):
+                if u_all[r0 + p] > u_max:
+                    end = min(end, p)
+                    break
+        for p in range(end):
+            if goal_hit[r0 + p]:
+                end = p + 1
+                hit[c] = True
+                break
+        if end == 0:
+            codes[c] = 5 if obstacles else 4
+            continue
+        k = min(steps[c], end)
+        top = 0.0
+        for p in range(k + 1):
+            top = max(top, u_all[r0 - 1 + p])
+        if u_max > 0.0 and top > u_max:
+            codes[c] = 4
+            continue
+        out_steps[c] = k
+        u_abs[c] = top
+        if directed and not hit[c]:
+            best, at = np.inf, 0
+            for p in range(k):
+                d2 = 0.0
+                for j in range(n):
+                    v = (traj[r0 + p, j] - aim[j]) * weight[j]
+                    d2 += v * v
+                if d2 < best:
+                    best, at = d2, p
+            near[c] = at
+            near_d2[c] = best
+            top = 0.0
+            for p in range(at + 2):
+                top = max(top, u_all[r0 - 1 + p])
+            near_u[c] = top
+    return codes, out_steps, hit, u_abs, near, near_d2, near_u
 
 
 @dataclass
@@ -546,34 +605,58 @@ class RRTCoLearn:
         return np.concatenate(kept_p)[:count], np.concatenate(kept_l)[:count]
 
     def _draw_edges(self, x0: np.ndarray, params: np.ndarray, costates: np.ndarray,
-                    lam: np.ndarray, z0: np.ndarray) -> list:
-        """The edges (None for a rejected draw) of `_draws`' parameters and costates, in
-        their order: each `_integrate_edge`, with one goal test for all of them (a user's
-        goal function is called once, not once per draw). ``_rejected`` ends as the last
-        rejected draw's reason."""
-        n = self.problem.system.n_states
-        rolled, why = [], []
-        for c in range(len(params)):
-            lam[:] = costates[c]
-            z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
-            r = self._roll_edge(params[c], lam, z0) if self._within_limit(z0) else None
-            rolled.append(r)
-            why.append(self._rejected if r is None else None)
-        paths = [r.path[: r.end] for r in rolled if r is not None]
-        if not paths:
-            return rolled
-        mask = self._goal_mask(np.concatenate(paths))
-        edges, begin = [], 0
-        for c, r in enumerate(rolled):
-            if r is not None:
-                hit = np.flatnonzero(mask[begin : begin + r.end])
-                begin += r.end
-                r = self._finish_edge(r, hit)
-                why[c] = self._rejected if r is None else None
-            edges.append(r)
-        if any(w is not None for w in why):
-            self._rejected = next(w for w in reversed(why) if w is not None)
-        return edges
+                    aim: np.ndarray | None = None, weight: np.ndarray | None = None
+                    ) -> Edge | None:
+        """The edge `_learned_iteration` keeps of `_draws`' parameters and costates: all
+        integrated in one compiled call (`integrate.rollout_draws`), the obstacles and the
+        goal region asked once for all their states, each cut and checked
+        (`_summarise_draws`); then the first that reaches the goal region, else (OMPL's
+        directed control sampling) the draw passing nearest ``aim`` (weighted by
+        ``weight``), cut at its state nearest it; without ``aim`` the first draw that gives
+        an edge. None (and ``_rejected`` the last rejected draw's reason) when no draw gives
+        an edge."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        n = sys.n_states
+        steps = np.maximum(1, np.rint(params[:, -1] / s.dt)).astype(np.int64)
+        traj, u_all, starts, codes = rollout_draws(sys, x0, costates, steps, s.time_weight,
+                                                   s.dt, *self._box, prob.u_max)
+        kept = np.flatnonzero(codes == 0)
+        rows = np.concatenate([np.arange(starts[c] + 1, starts[c] + 1 + steps[c])
+                               for c in kept]) if kept.size else np.empty(0, np.int64)
+        goal_hit = np.zeros(len(traj), dtype=bool)
+        valid = np.ones(len(traj), dtype=bool)
+        if rows.size:
+            goal_hit[rows] = self._goal_mask(traj[rows, :n])
+            if prob.validity:
+                valid[rows] = prob.validity(traj[rows, :n])
+        directed = aim is not None
+        if not directed:
+            aim = weight = np.zeros(n)
+        codes, steps_c, hit, u_abs, near, near_d2, near_u = _summarise_draws(
+            traj, starts, steps, codes, u_all, goal_hit, valid,
+            -1.0 if prob.u_max is None else float(prob.u_max), s.input_limit == "cut",
+            bool(prob.validity), np.asarray(aim, dtype=np.float64), weight, directed)
+        rejected = np.flatnonzero(codes)
+        if rejected.size:
+            self._rejected = _DRAW_REASONS[codes[rejected[-1]]]
+        best, edge_of = np.inf, None
+        for c in np.flatnonzero(codes == 0).tolist():
+            if not directed or hit[c]:  # the whole (cut) draw
+                edge_of = (c, int(steps_c[c]), bool(hit[c]), float(u_abs[c]),
+                           steps_c[c] < steps[c])
+                break
+            if near_d2[c] < best:  # up to its state nearest the aim
+                best = near_d2[c]
+                edge_of = (c, int(near[c]) + 1, False, float(near_u[c]), True)
+        if edge_of is None:
+            return None
+        c, k, reached, top, shortened = edge_of
+        edge_traj = traj[starts[c] : starts[c] + k + 1].copy()
+        edge_params = params[c].copy()
+        if shortened:
+            edge_params[-1] = k * s.dt
+        return Edge(edge_traj, k, float(edge_traj[-1, 2 * n]), top, reached, edge_params,
+                    costates[c].copy())
 
     def _within_limit(self, z0: np.ndarray) -> bool:
         """False (and the outcome noted) when the input at the edge's start already breaks
@@ -598,62 +681,9 @@ class RRTCoLearn:
 
     def _integrate_edge(self, x0: np.ndarray, params: np.ndarray, lam: np.ndarray,
                         z0: np.ndarray):
-        """The edge of `_edge` for parameters whose start `_start_edge` accepted."""
-        rolled = self._roll_edge(params, lam, z0)
-        if rolled is None:
-            return None
-        return self._finish_edge(rolled, self._goal_hits(rolled.path[: rolled.end]))
-
-    def _roll_edge(self, params: np.ndarray, lam: np.ndarray, z0: np.ndarray):
-        """`_integrate_edge` up to its goal test: the extremal integrated, rejected at the
-        state box, cut at obstacles and at the input limit (`_Rolled`); None (and
-        ``_rejected`` says why) when it is rejected."""
-        prob, sys, s = self.problem, self.problem.system, self.settings
-        n, u_max = sys.n_states, prob.u_max
-        steps = max(1, round(params[-1] / s.dt))
-        traj = rollout(sys, z0, s.time_weight, s.dt, steps)
-        # non-finite values propagate to the last RK4 step, so checking it suffices
-        if not np.isfinite(traj[-1]).all():
-            self._rejected = "nonfinite"
-            return None
-        path = traj[1:, :n]
-        if s.enforce_bounds and not all_within(path, *self._box):
-            self._rejected = "state_box"
-            return None
-        end = steps
-        if prob.validity:
-            # cut the edge at its last valid state, as OMPL's propagateWhileValid does
-            invalid = np.flatnonzero(~prob.validity(path))
-            if invalid.size:
-                end = int(invalid[0])
-        u_all = np.abs(sys.optimal_control(traj[:, :n], traj[:, n : 2 * n])).max(axis=1)
-        if u_max is not None and s.input_limit == "cut":
-            over = np.flatnonzero(u_all[1:] > u_max)
-            if over.size:
-                end = min(end, int(over[0]))
-        return _Rolled(traj, path, steps, end, u_all, params, lam.copy())
-
-    def _finish_edge(self, rolled: _Rolled, hit: np.ndarray):
-        """The edge of a `_roll_edge` result, cut at its first state in the goal region
-        (``hit``: the indices of its path's states there, within ``rolled.end``)."""
-        s, u_max = self.settings, self.problem.u_max
-        traj, steps, end, params = rolled.traj, rolled.steps, rolled.end, rolled.params
-        n = self.problem.system.n_states
-        if hit.size:
-            end = int(hit[0]) + 1
-        if end == 0:
-            self._rejected = "obstacle" if self.problem.validity else "input_limit"
-            return None
-        if end < steps:
-            traj = traj[: end + 1]
-            steps = end
-            params[-1] = steps * s.dt
-        u_abs = float(rolled.u_all[: steps + 1].max())
-        if u_max is not None and u_abs > u_max:
-            self._rejected = "input_limit"
-            return None
-        return Edge(traj, steps, float(traj[-1, 2 * n]), u_abs, bool(hit.size), params,
-                    rolled.costate)
+        """The edge of `_edge` for parameters whose start `_start_edge` accepted: the one
+        draw of `_draw_edges`."""
+        return self._draw_edges(x0, params[None], lam[None])
 
     def _connect_goal(self, tree: PlannerData, shifts: np.ndarray, tried: np.ndarray,
                       weight: np.ndarray, lam: np.ndarray, z0: np.ndarray):
@@ -825,13 +855,13 @@ class RRTCoLearn:
         x0 = states[parent]
         aim = aims[row] if aim_images else target
         sigma = s.sigma_goal if to_goal else s.sigma
-        edge, best_d2 = None, np.inf
         if s.control_samples > 1 and not self._circular.any():
             draws = self._draws(rng, x0, prediction, sigma, s.control_samples)
-            cands = self._draw_edges(x0, *draws, lam, z0)
-        else:  # one draw at a time (the paper's planner)
-            cands = (self._edge(rng, x0, prediction, sigma, lam, z0)
-                     for _ in range(s.control_samples))
+            return parent, self._draw_edges(x0, *draws, aim, weight), "learned"
+        # one draw at a time (the paper's planner)
+        cands = (self._edge(rng, x0, prediction, sigma, lam, z0)
+                 for _ in range(s.control_samples))
+        edge, best_d2 = None, np.inf
         for cand in cands:
             if cand is None:
                 continue
@@ -852,10 +882,6 @@ class RRTCoLearn:
                 edge = Edge(traj_c, k + 1, float(traj_c[-1, 2 * n]), u_c, False, params_c,
                             cand.costate)
         return parent, edge, "learned"
-
-    def _goal_hits(self, path: np.ndarray) -> np.ndarray:
-        """Indices of the states of ``path`` (k, n) inside the goal region."""
-        return np.flatnonzero(self._goal_mask(path))
 
     def _control_edge(self, rng: np.random.Generator, x0: np.ndarray, directed: bool):
         """A random-control edge from ``x0`` (the expansion of sampling-based kinodynamic

@@ -48,6 +48,8 @@ class System:
         (`rrtcolearn.integrate.propagate_draws`, `rrtcolearn.integrate.propagate`).
     closed_loop_jit : compiled RK4 of ``dynamics`` under a saturated linear feedback, the
         LQR goal connection's loop (`rrtcolearn.planning.lqr.GoalLQR.run`).
+    rollout_draws_jit : compiled `rollout_jit` of a batch of costates from one state, checked
+        (`rrtcolearn.integrate.rollout_draws`).
     explore_jit : the planner's random-control iterations compiled with ``dynamics``
         (`rrtcolearn.planning.rrt.RRTCoLearn._explore`).
     input_low, input_high : (m,) box of the inputs (+-inf where unbounded; None: no limits).
@@ -82,6 +84,7 @@ class System:
     input_high: np.ndarray | None = None
     propagate_jit: Callable | None = None
     closed_loop_jit: Callable | None = None
+    rollout_draws_jit: Callable | None = None
     explore_jit: Callable | None = None
 
     @property

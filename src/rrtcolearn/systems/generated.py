@@ -124,6 +124,7 @@ _GENERATED = {
     "params_from_costate": "params_from_costate",
     "propagate_jit": "propagate_jit",
     "closed_loop_jit": "closed_loop_jit",
+    "rollout_draws_jit": "rollout_draws_jit",
     "explore_jit": "explore_jit",
 }
 
