@@ -44,7 +44,8 @@ class _Probe(TerminationCondition):
         self.parts: dict[int, dict[str, list[float]]] = {}
         self._open: list[int] = []  # the windows being measured
         for method, part in _PARTS.items():
-            setattr(planner, method, self._timed(getattr(planner, method), part))
+            if hasattr(planner, method):  # (an older planner may lack a part)
+                setattr(planner, method, self._timed(getattr(planner, method), part))
 
     def _timed(self, fn, part: str):
         def timed(*args, **kwargs):
