@@ -272,22 +272,81 @@ def rollout_draws_jit(x0, lams, steps, w, dt, low, high, u_max):
 
 
 @_numba.njit(cache=True)
+def _explore_draw(x0, u, length, dt, traj, row, boxes, k1, k2, k3, k4, tmp):
+    # RK4 of x' = f(x, u) from x0 for length steps into traj[row + 1 :] (x0 at row), stopped
+    # before the first state outside the constraint box or not finite: (states kept, stop:
+    # 0 none, 1 outside, 2 not finite), as propagate_jit integrates a draw
+    n = x0.shape[0]
+    for i in range(n):
+        traj[row, i] = x0[i]
+    kept = 0
+    for s in range(length):
+        _rk4_plain_step(traj[row + kept], u, dt, k1, k2, k3, k4, tmp, traj[row + kept + 1])
+        inside = True
+        finite = True
+        for i in range(n):
+            v = traj[row + kept + 1, i]
+            inside = inside and boxes[2, i] <= v <= boxes[3, i]
+            finite = finite and _math.isfinite(v)
+        if not inside:
+            return kept, 1 if finite else 2
+        kept += 1
+    return kept, 0
+
+
+@_numba.njit(cache=True)
+def _ball_d2(x, goal):
+    # squared weighted distance of x to the goal ball's centre, angles the short way round
+    # (planning/rrt.py _pick_state)
+    d2 = 0.0
+    for i in range(x.shape[0]):
+        v = x[i] - goal[0, i]
+        if goal[2, i] > 0.0:
+            v = _np.mod(v + _np.pi, 2.0 * _np.pi) - _np.pi
+        v *= goal[1, i]
+        d2 += v * v
+    return d2
+
+
+@_numba.njit(cache=True)
+def _index_point(x, index_consts, ii, out):
+    # x in node index ii's stored coordinates (planning/nearest.py NodeIndex._wrapped)
+    for j in range(x.shape[0]):
+        y = x[j] * index_consts[ii, 0, j] - index_consts[ii, 1, j]
+        if index_consts[ii, 3, j] > 0.0:
+            y = _np.mod(y, index_consts[ii, 2, j])
+            if y >= index_consts[ii, 2, j]:
+                y = 0.0
+        out[j] = y
+
+
+@_numba.njit(cache=True)
 def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, states,
                 parents, controls, durations, costs, max_abs_u, shifts, R):
-    # the planner's random-control iterations that are not goal-biased, compiled
-    # (planning/rrt.py, RRTCoLearn._explore): each draws the goal bias, a uniform target,
-    # its nearest node (index nearest_of, angles modulo a turn), a uniform input held for
-    # 1..longest steps, and adds the node at the draw's last state inside the constraint
-    # box, or (ball) at its first state in the goal ball. The numbers are those of the
-    # Python iteration (same generator calls in the same order, same arithmetic).
-    # ints: budget, iterations, last_growth, stall, longest, ball, n_index, nearest_of, size
+    # the planner's random-control expansions compiled (planning/rrt.py,
+    # RRTCoLearn._explore), with the numbers of the Python iterations (the same generator
+    # calls in the same order, the same arithmetic). First, with directed >= 0, a goal-biased
+    # iteration's expansion from node directed: `samples` inputs held for 1..longest steps
+    # and the draw state first in the goal ball, else nearest it (_control_edge). Then up to
+    # budget iterations, stopped before a goal-biased one: each draws the goal bias, a
+    # uniform target, its nearest node (node index nearest_of, angles modulo a turn), an
+    # input held for 1..longest steps, and adds the node at the draw's last state inside
+    # the constraint box, or (ball) at its first state in the goal ball.
+    # ints: budget, iterations, last_growth, stall, longest, ball, n_index, nearest_of, size,
+    # directed, samples
     # floats: dt, goal_bias, tol2, w
     # boxes (8, n): sample low/high, constraint low/high, input low/high (first m
     # columns), the shift's low, angle coordinates (1.0) for the shift
     # goal (3, n): goal, weights, angle coordinates (1.0) of the ball test
     # index_consts (2, 4, n): per node index its weight, low, period, angle mask (1.0)
+    # Returns (code: 0 budget spent, 1 stopped before a goal-biased iteration (its goal
+    # bias drawn), 2 stalled, 3 a node in the goal ball; iterations, nodes, the new edges'
+    # states (each from its parent's), their first rows, each new node's iteration and
+    # distance to the goal ball's centre, and per action (the directed expansion, then
+    # each iteration) 0 a node added, its stop reason (1, 2) or 3 goal-biased)
     budget, iterations, last_growth, stall, longest, ball, n_index, nearest_of, size = \
         ints[0], ints[1], ints[2], ints[3], ints[4], ints[5], ints[6], ints[7], ints[8]
+    directed, samples = ints[9], ints[10]
     dt, goal_bias, tol2, w = floats[0], floats[1], floats[2], floats[3]
     n = states.shape[1]
     m = controls.shape[1]
@@ -298,87 +357,117 @@ def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, 
     tmp = _np.empty(n)
     q = _np.empty(n)
     u = _np.empty(m)
+    inputs = _np.empty((max(samples, 1), m))
+    lengths = _np.empty(max(samples, 1), _np.int64)
+    actions = budget + 1
     traj = _np.empty((max(16, 4 * (longest + 1)), n))
     used = 0
-    starts = _np.empty(budget + 1, _np.int64)
-    node_it = _np.empty(budget, _np.int64)
-    ends = _np.empty(budget)
-    reasons = _np.zeros(budget, _np.int64)
+    starts = _np.empty(actions + 1, _np.int64)
+    node_it = _np.empty(actions, _np.int64)
+    ends = _np.empty(actions)
+    reasons = _np.zeros(actions, _np.int64)
     node = size
     code = 0
-    done = 0
+    done = 0  # actions taken
+    loops = 0  # iterations begun
     pts = points1 if nearest_of == 1 else points0
-    while done < budget:
-        if stall > 0 and iterations - last_growth >= stall:
-            code = 2
-            break
-        iterations += 1
-        done += 1
-        if rng.random() < goal_bias:
-            code = 1
-            reasons[done - 1] = 3
-            break
-        # target uniform in the sampling box, in the node index's coordinates
-        for j in range(n):
-            t = boxes[0, j] + (boxes[1, j] - boxes[0, j]) * rng.random()
-            y = t * index_consts[nearest_of, 0, j] - index_consts[nearest_of, 1, j]
-            if index_consts[nearest_of, 3, j] > 0.0:
-                y = _np.mod(y, index_consts[nearest_of, 2, j])
-                if y >= index_consts[nearest_of, 2, j]:
-                    y = 0.0
-            q[j] = y
-        parent = 0
-        best = 0.0
-        for r in range(node):
-            acc = 0.0
-            for j in range(n):
-                d = pts[r, j] - q[j]
-                p = index_consts[nearest_of, 2, j]
-                if p > 0.0:
-                    d = _np.mod(d + 0.5 * p, p) - 0.5 * p
-                acc += d * d
-            if r == 0 or acc < best:
-                parent, best = r, acc
-        for i in range(m):
-            u[i] = boxes[4, i] + (boxes[5, i] - boxes[4, i]) * rng.random()
-        length = rng.integers(1, longest + 1)
-        while used + length + 1 > traj.shape[0]:
-            grown = _np.empty((2 * traj.shape[0], n))
-            grown[:used] = traj[:used]
-            traj = grown
-        traj[used] = states[parent]
-        kept = 0
-        stop = 0
+    while True:
         hit = False
-        last_d2 = 0.0
-        for s in range(length):
-            _rk4_plain_step(traj[used + kept], u, dt, k1, k2, k3, k4, tmp,
-                            traj[used + kept + 1])
-            inside = True
-            finite = True
-            for i in range(n):
-                v = traj[used + kept + 1, i]
-                inside = inside and boxes[2, i] <= v <= boxes[3, i]
-                finite = finite and _math.isfinite(v)
-            if not inside:
-                stop = 1 if finite else 2
-                break
-            kept += 1
-            if ball:
-                d2 = 0.0
-                for i in range(n):
-                    v = traj[used + kept, i] - goal[0, i]
-                    if goal[2, i] > 0.0:
-                        v = _np.mod(v + _np.pi, 2.0 * _np.pi) - _np.pi
-                    v *= goal[1, i]
-                    d2 += v * v
-                last_d2 = d2
-                if d2 <= tol2:
-                    hit = True
+        if directed >= 0:  # the goal-biased iteration's expansion, before the loop
+            parent = directed
+            directed = -1
+            for c in range(samples):
+                for i in range(m):
+                    inputs[c, i] = boxes[4, i] + (boxes[5, i] - boxes[4, i]) * rng.random()
+            total = 0
+            for c in range(samples):
+                lengths[c] = rng.integers(1, longest + 1)
+                total += lengths[c] + 1
+            while used + total > traj.shape[0]:
+                grown = _np.empty((2 * traj.shape[0], n))
+                grown[:used] = traj[:used]
+                traj = grown
+            # each draw at its own rows after `used`; the chosen one is moved to `used`
+            best_row, best_k, best_d2, best_c = -1, 0, _np.inf, -1
+            first_stop = -1
+            row = used
+            for c in range(samples):
+                kept, stop = _explore_draw(states[parent], inputs[c], lengths[c], dt, traj,
+                                           row, boxes, k1, k2, k3, k4, tmp)
+                if c == 0:
+                    first_stop = stop
+                for k in range(kept):
+                    d2 = _ball_d2(traj[row + 1 + k], goal)
+                    if d2 <= tol2:
+                        hit = True
+                        best_row, best_k, best_d2, best_c = row, k, d2, c
+                        break
+                    if samples == 1 or _math.sqrt(d2) < _math.sqrt(best_d2):
+                        best_row, best_k, best_d2, best_c = row, k, d2, c
+                if hit:
                     break
-        if kept == 0:
-            reasons[done - 1] = stop
-            continue
+                row += lengths[c] + 1
+            if best_c < 0:
+                reasons[done] = first_stop
+                done += 1
+                continue
+            kept = best_k + 1
+            if best_row != used:
+                for r in range(kept + 1):
+                    traj[used + r] = traj[best_row + r]
+            for i in range(m):
+                u[i] = inputs[best_c, i]
+        else:
+            if loops >= budget:
+                break
+            loops += 1
+            if stall > 0 and iterations - last_growth >= stall:
+                code = 2
+                break
+            iterations += 1
+            if rng.random() < goal_bias:
+                code = 1
+                reasons[done] = 3
+                done += 1
+                break
+            # target uniform in the sampling box, in the node index's coordinates
+            for j in range(n):
+                q[j] = boxes[0, j] + (boxes[1, j] - boxes[0, j]) * rng.random()
+            _index_point(q, index_consts, nearest_of, q)  # (in place: entry by entry)
+            parent = 0
+            best = 0.0
+            for r in range(node):
+                acc = 0.0
+                for j in range(n):
+                    d = pts[r, j] - q[j]
+                    p = index_consts[nearest_of, 2, j]
+                    if p > 0.0:
+                        d = _np.mod(d + 0.5 * p, p) - 0.5 * p
+                    acc += d * d
+                if r == 0 or acc < best:
+                    parent, best = r, acc
+            for i in range(m):
+                u[i] = boxes[4, i] + (boxes[5, i] - boxes[4, i]) * rng.random()
+            length = rng.integers(1, longest + 1)
+            while used + length + 1 > traj.shape[0]:
+                grown = _np.empty((2 * traj.shape[0], n))
+                grown[:used] = traj[:used]
+                traj = grown
+            kept, stop = _explore_draw(states[parent], u, length, dt, traj, used, boxes, k1,
+                                       k2, k3, k4, tmp)
+            best_d2 = 0.0
+            if ball:
+                for k in range(kept):
+                    best_d2 = _ball_d2(traj[used + 1 + k], goal)
+                    if best_d2 <= tol2:
+                        hit = True
+                        kept = k + 1
+                        break
+            if kept == 0:
+                reasons[done] = stop
+                done += 1
+                continue
+        # the node at traj[used + kept], from parent under u
         x = traj[used + kept]
         uru = 0.0
         uabs = 0.0
@@ -394,15 +483,9 @@ def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, 
         durations[node] = kept * dt
         costs[node] = kept * dt * (w + 0.5 * uru)
         max_abs_u[node] = uabs
-        for ii in range(n_index):
-            dest = points1 if ii == 1 else points0
-            for j in range(n):
-                y = x[j] * index_consts[ii, 0, j] - index_consts[ii, 1, j]
-                if index_consts[ii, 3, j] > 0.0:
-                    y = _np.mod(y, index_consts[ii, 2, j])
-                    if y >= index_consts[ii, 2, j]:
-                        y = 0.0
-                dest[node, j] = y
+        _index_point(x, index_consts, 0, points0[node])
+        if n_index == 2:
+            _index_point(x, index_consts, 1, points1[node])
         for j in range(n):
             shifts[node, j] = 0.0
             if boxes[7, j] > 0.0:
@@ -411,7 +494,9 @@ def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, 
         k = node - size
         starts[k] = used
         node_it[k] = iterations
-        ends[k] = _math.sqrt(last_d2)
+        ends[k] = _math.sqrt(best_d2)
+        reasons[done] = 0
+        done += 1
         used += kept + 1
         node += 1
         last_growth = iterations

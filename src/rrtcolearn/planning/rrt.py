@@ -405,6 +405,7 @@ class _Run:
     last_growth: int = 0  # the iteration that last added a node
     stalled: bool = False
     explore: _ExploreConsts | None = None  # the compiled iterations' constants, if they run
+    directed: int = -1  # the parent of a goal-biased control expansion left to `_explore`
     tried: np.ndarray = field(default_factory=lambda: np.zeros(256, dtype=bool))
     switched: dict = field(default_factory=dict)  # when connections were switched on
     edges_by: dict = field(default_factory=lambda: {"learned": 0, "control": 0})
@@ -1017,24 +1018,30 @@ class RRTCoLearn:
             if to_goal and self._connect(rng, run):
                 break
             self._expand(rng, run, target, to_goal)
+        if run.directed >= 0:  # the last iteration's expansion, left to a compiled batch
+            self._explore(rng, run, 0)
         return self._result(run, time.thread_time() - cpu0, termination.elapsed())
 
     def _explore(self, rng: np.random.Generator, run: _Run, budget: int) -> bool:
         """Up to ``budget`` iterations compiled (`integrate.explore_jit`): the random-control
         iterations that are not goal-biased, exactly as `solve` runs them (the same draws,
-        nodes and counts). Returns True when the last iteration drew the goal bias: its goal
-        target, connections and expansion are `solve`'s to run. Sets ``run.goal_node`` when a
+        nodes and counts), after the directed control expansion of the goal-biased iteration
+        before them if `_expand` left it here (``run.directed``). Returns True when the last
+        iteration drew the goal bias: its goal target, connections and expansion are
+        `solve`'s to run. Sets ``run.goal_node`` when a
         node reached the goal region and ``run.stalled`` when the tree stalled."""
         prob, s = self.problem, self.settings
         tree, ex = run.tree, run.explore
         size = tree.n_nodes
-        tree.reserve(budget)
-        points = [index.reserve(budget) for index in self._indices]
-        if run.shifts.shape[0] < size + budget:
-            run.shifts = _grown(run.shifts, size + budget, 0.0)
+        tree.reserve(budget + 1)  # (+ 1: a goal-biased iteration's expansion first)
+        points = [index.reserve(budget + 1) for index in self._indices]
+        if run.shifts.shape[0] < size + budget + 1:
+            run.shifts = _grown(run.shifts, size + budget + 1, 0.0)
         ints = np.array([budget, run.iterations, run.last_growth, s.stall_iterations,
                          ex.longest, self._ball is not None, len(points),
-                         len(points) - 1, size], dtype=np.int64)
+                         len(points) - 1, size, run.directed, max(1, s.control_samples)],
+                        dtype=np.int64)
+        run.directed = -1
         floats = np.array([s.dt, s.goal_bias, ex.tol2, s.time_weight])
         code, iterations, nodes, traj, starts, node_it, ends, reasons = \
             prob.system.explore_jit(rng, ints, floats, ex.boxes, ex.goal, ex.index_consts,
@@ -1289,6 +1296,9 @@ class RRTCoLearn:
                 self._reach * self._reach)
         if edge is None and run.exploring:
             parent = int(run.wrapped.nearest(target, 1)[0])
+            if to_goal and run.explore is not None and self._ball is not None:
+                run.directed = parent  # the next compiled batch begins with it
+                return
             edge = self._control_edge(rng, states[parent], to_goal)
             kind = "control"
         if edge is None:
