@@ -294,6 +294,15 @@ def _explore_draw(x0, u, length, dt, traj, row, boxes, k1, k2, k3, k4, tmp):
     return kept, 0
 
 
+@_numba.njit(cache=True, inline="always")
+def _mod(a, p):
+    # numpy's mod(a, p) for p > 0, without fmod where a already lies in (0, p) (there mod
+    # returns a itself): the same bits, several times faster in the planner's scans
+    if 0.0 < a < p:
+        return a
+    return _np.mod(a, p)
+
+
 @_numba.njit(cache=True)
 def _ball_d2(x, goal):
     # squared weighted distance of x to the goal ball's centre, angles the short way round
@@ -302,7 +311,7 @@ def _ball_d2(x, goal):
     for i in range(x.shape[0]):
         v = x[i] - goal[0, i]
         if goal[2, i] > 0.0:
-            v = _np.mod(v + _np.pi, 2.0 * _np.pi) - _np.pi
+            v = _mod(v + _np.pi, 2.0 * _np.pi) - _np.pi
         v *= goal[1, i]
         d2 += v * v
     return d2
@@ -314,7 +323,7 @@ def _index_point(x, index_consts, ii, out):
     for j in range(x.shape[0]):
         y = x[j] * index_consts[ii, 0, j] - index_consts[ii, 1, j]
         if index_consts[ii, 3, j] > 0.0:
-            y = _np.mod(y, index_consts[ii, 2, j])
+            y = _mod(y, index_consts[ii, 2, j])
             if y >= index_consts[ii, 2, j]:
                 y = 0.0
         out[j] = y
@@ -442,7 +451,7 @@ def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, 
                     d = pts[r, j] - q[j]
                     p = index_consts[nearest_of, 2, j]
                     if p > 0.0:
-                        d = _np.mod(d + 0.5 * p, p) - 0.5 * p
+                        d = _mod(d + 0.5 * p, p) - 0.5 * p
                     acc += d * d
                 if r == 0 or acc < best:
                     parent, best = r, acc

@@ -806,12 +806,6 @@ class RRTCoLearn:
         return _FunnelSearch(funnel, np.full((256, _FUNNEL_POINTS), np.inf),
                              np.zeros((256, _FUNNEL_POINTS), int), np.zeros(256, bool))
 
-    def _within_reach(self, states: np.ndarray, target: np.ndarray, weight: np.ndarray,
-                      wrapped: NodeIndex) -> bool:
-        """Whether the tree node nearest ``target`` (weighted, angles modulo a turn) lies
-        within the data's reach of it, where U has seen segments that long."""
-        return self._nearest(states, target, weight, wrapped)[2] <= self.settings.connect_reach
-
     def _learned_iteration(self, rng, states: np.ndarray, target: np.ndarray,
                            to_goal: bool, weight: np.ndarray, plain: NodeIndex,
                            wrapped: NodeIndex, shifts: np.ndarray, lam: np.ndarray,
@@ -1057,30 +1051,24 @@ class RRTCoLearn:
             if code == 3:  # the batch ends at that edge's iteration
                 run.iterations = int(node_it[added - 1])
                 reasons = reasons[: run.iterations - first_it]
-        if added:
-            rows = slice(size, size + added)
-            tree.costates[rows] = np.nan
-            tree.params[rows] = np.nan
-            tree.trajectories.extend(traj[a:b] for a, b in pairwise(starts[: added + 1]))
+        run.since_growth_nearer += run.iterations - first_it
+        if added:  # (costates and parameters of new rows are NaN: PlannerData.reserve)
+            bounds = starts[: added + 1].tolist()
+            tree.trajectories.extend(traj[a:b] for a, b in pairwise(bounds))
             tree.n_nodes = size + added
-            run.last_growth = int(node_it[added - 1])
-            prev = np.minimum.accumulate(np.concatenate([[run.best_goal], ends]))[:-1]
-            nearer = np.flatnonzero(ends < prev)
-            if nearer.size:
-                run.best_goal = float(ends[nearer[-1]])
-                run.since_nearer = 0
-                run.since_growth_nearer = run.iterations - int(node_it[nearer[-1]])
-            else:
-                run.since_growth_nearer += run.iterations - first_it
-        else:
-            run.since_growth_nearer += run.iterations - first_it
+            its = node_it[:added].tolist()
+            run.last_growth = its[-1]
+            for it, d in zip(its, ends[:added].tolist(), strict=True):
+                if d < run.best_goal:  # as `_expand` records a node nearer the goal
+                    run.best_goal, run.since_nearer = d, 0
+                    run.since_growth_nearer = run.iterations - it
         for index in self._indices:
             index.commit(size + added)
-        counts = np.bincount(reasons, minlength=4)
-        run.outcomes["added"] += int(counts[0])
-        run.outcomes["state_box"] += int(counts[1])
-        run.outcomes["nonfinite"] += int(counts[2])
-        run.edges_by["control"] += int(counts[0])
+        reasons = reasons.tolist()
+        run.outcomes["added"] += reasons.count(0)
+        run.outcomes["state_box"] += reasons.count(1)
+        run.outcomes["nonfinite"] += reasons.count(2)
+        run.edges_by["control"] += reasons.count(0)
         if code == 3:
             run.goal_node = size + added - 1
         elif code == 2:
@@ -1286,8 +1274,12 @@ class RRTCoLearn:
         prob, s = self.problem, self.settings
         n = prob.system.n_states
         states = run.tree.states[: run.tree.n_nodes]
-        if run.exploring and (self.model is None or not to_goal or not self._within_reach(
-                states, target, run.weight, run.wrapped)):
+        nearest = -1  # the node nearest the target (weighted, angles modulo a turn)
+        if run.exploring and self.model is not None and to_goal:
+            # the learned steering for goal targets within the data's reach, where U has
+            # seen segments that long
+            nearest, _, dist = self._nearest(states, target, run.weight, run.wrapped)
+        if run.exploring and (nearest < 0 or dist > self.settings.connect_reach):
             parent, edge, kind = -1, None, "control"
         else:
             parent, edge, kind = self._learned_iteration(
@@ -1295,7 +1287,7 @@ class RRTCoLearn:
                 run.lam, run.z0, bool(s.extend_distance), s.max_candidates is not None,
                 self._reach * self._reach)
         if edge is None and run.exploring:
-            parent = int(run.wrapped.nearest(target, 1)[0])
+            parent = nearest if nearest >= 0 else int(run.wrapped.nearest(target, 1)[0])
             if to_goal and run.explore is not None and self._ball is not None:
                 run.directed = parent  # the next compiled batch begins with it
                 return

@@ -6,6 +6,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# columns whose unwritten rows are NaN: a control edge has no costate or parameters, an
+# extremal no control
+_NAN_FILLED = ("controls", "costates", "params")
+
 
 class PlannerData:
     """A growing tree: node states, parent links, and the edge that reached each node.
@@ -23,9 +27,9 @@ class PlannerData:
         self.n_nodes = 0
         self.states = np.empty((capacity, n))
         self.parents = np.empty(capacity, dtype=np.int64)
-        self.costates = np.empty((capacity, n))
+        self.costates = np.full((capacity, n), np.nan)
         self.controls = np.full((capacity, n_inputs), np.nan)
-        self.params = np.empty((capacity, n_params))
+        self.params = np.full((capacity, n_params), np.nan)
         self.durations = np.empty(capacity)
         self.costs = np.empty(capacity)
         self.max_abs_u = np.empty(capacity)
@@ -38,13 +42,14 @@ class PlannerData:
                      "costs", "max_abs_u"):
             old = getattr(self, name)
             new = np.full((2 * old.shape[0], *old.shape[1:]), np.nan, dtype=old.dtype) \
-                if name == "controls" else np.empty((2 * old.shape[0], *old.shape[1:]),
-                                                    dtype=old.dtype)
+                if name in _NAN_FILLED else np.empty((2 * old.shape[0], *old.shape[1:]),
+                                                     dtype=old.dtype)
             new[: self.n_nodes] = old[: self.n_nodes]
             setattr(self, name, new)
 
     def reserve(self, k: int) -> None:
-        """Room for ``k`` more nodes (for a compiled caller that writes them in place)."""
+        """Room for ``k`` more nodes, for a compiled caller that writes them in place (rows
+        not written hold NaN in ``controls``, ``costates`` and ``params``)."""
         while self.states.shape[0] < self.n_nodes + k:
             self._grow()
 
