@@ -335,12 +335,13 @@ def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, 
     # the planner's random-control expansions compiled (planning/rrt.py,
     # RRTCoLearn._explore), with the numbers of the Python iterations (the same generator
     # calls in the same order, the same arithmetic). First, with directed >= 0, a goal-biased
-    # iteration's expansion from node directed: `samples` inputs held for 1..longest steps
-    # and the draw state first in the goal ball, else nearest it (_control_edge). Then up to
-    # budget iterations, stopped before a goal-biased one: each draws the goal bias, a
-    # uniform target, its nearest node (node index nearest_of, angles modulo a turn), an
-    # input held for 1..longest steps, and adds the node at the draw's last state inside
-    # the constraint box, or (ball) at its first state in the goal ball.
+    # iteration's expansion from node directed: `samples` draws. Then up to budget
+    # iterations, stopped before a goal-biased one: each draws the goal bias, a uniform
+    # target and its nearest node (node index nearest_of, angles modulo a turn), and expands
+    # it by one draw. A draw is an input uniform in the input box held for 1..longest steps,
+    # stopped before its first state outside the constraint box or not finite; the node
+    # goes at the draws' first state in the goal ball (ball), else with one draw at its last
+    # state, else at the state nearest the ball's centre (_control_edge, _pick_state).
     # ints: budget, iterations, last_growth, stall, longest, ball, n_index, nearest_of, size,
     # directed, samples
     # floats: dt, goal_bias, tol2, w
@@ -365,7 +366,6 @@ def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, 
     k4 = _np.empty(n)
     tmp = _np.empty(n)
     q = _np.empty(n)
-    u = _np.empty(m)
     inputs = _np.empty((max(samples, 1), m))
     lengths = _np.empty(max(samples, 1), _np.int64)
     actions = budget + 1
@@ -381,51 +381,10 @@ def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, 
     loops = 0  # iterations begun
     pts = points1 if nearest_of == 1 else points0
     while True:
-        hit = False
         if directed >= 0:  # the goal-biased iteration's expansion, before the loop
             parent = directed
+            count = samples
             directed = -1
-            for c in range(samples):
-                for i in range(m):
-                    inputs[c, i] = boxes[4, i] + (boxes[5, i] - boxes[4, i]) * rng.random()
-            total = 0
-            for c in range(samples):
-                lengths[c] = rng.integers(1, longest + 1)
-                total += lengths[c] + 1
-            while used + total > traj.shape[0]:
-                grown = _np.empty((2 * traj.shape[0], n))
-                grown[:used] = traj[:used]
-                traj = grown
-            # each draw at its own rows after `used`; the chosen one is moved to `used`
-            best_row, best_k, best_d2, best_c = -1, 0, _np.inf, -1
-            first_stop = -1
-            row = used
-            for c in range(samples):
-                kept, stop = _explore_draw(states[parent], inputs[c], lengths[c], dt, traj,
-                                           row, boxes, k1, k2, k3, k4, tmp)
-                if c == 0:
-                    first_stop = stop
-                for k in range(kept):
-                    d2 = _ball_d2(traj[row + 1 + k], goal)
-                    if d2 <= tol2:
-                        hit = True
-                        best_row, best_k, best_d2, best_c = row, k, d2, c
-                        break
-                    if samples == 1 or _math.sqrt(d2) < _math.sqrt(best_d2):
-                        best_row, best_k, best_d2, best_c = row, k, d2, c
-                if hit:
-                    break
-                row += lengths[c] + 1
-            if best_c < 0:
-                reasons[done] = first_stop
-                done += 1
-                continue
-            kept = best_k + 1
-            if best_row != used:
-                for r in range(kept + 1):
-                    traj[used + r] = traj[best_row + r]
-            for i in range(m):
-                u[i] = inputs[best_c, i]
         else:
             if loops >= budget:
                 break
@@ -455,29 +414,51 @@ def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, 
                     acc += d * d
                 if r == 0 or acc < best:
                     parent, best = r, acc
+            count = 1
+        # the draws: inputs, then lengths (the generator calls of _control_edge)
+        for c in range(count):
             for i in range(m):
-                u[i] = boxes[4, i] + (boxes[5, i] - boxes[4, i]) * rng.random()
-            length = rng.integers(1, longest + 1)
-            while used + length + 1 > traj.shape[0]:
-                grown = _np.empty((2 * traj.shape[0], n))
-                grown[:used] = traj[:used]
-                traj = grown
-            kept, stop = _explore_draw(states[parent], u, length, dt, traj, used, boxes, k1,
-                                       k2, k3, k4, tmp)
-            best_d2 = 0.0
-            if ball:
-                for k in range(kept):
-                    best_d2 = _ball_d2(traj[used + 1 + k], goal)
-                    if best_d2 <= tol2:
-                        hit = True
-                        kept = k + 1
-                        break
-            if kept == 0:
-                reasons[done] = stop
-                done += 1
-                continue
-        # the node at traj[used + kept], from parent under u
+                inputs[c, i] = boxes[4, i] + (boxes[5, i] - boxes[4, i]) * rng.random()
+        total = 0
+        for c in range(count):
+            lengths[c] = rng.integers(1, longest + 1)
+            total += lengths[c] + 1
+        while used + total > traj.shape[0]:
+            grown = _np.empty((2 * traj.shape[0], n))
+            grown[:used] = traj[:used]
+            traj = grown
+        # each draw at its own rows after `used`; the chosen one is moved to `used`
+        hit = False
+        best_row, best_k, best_d2, best_c = -1, 0, _np.inf, -1
+        first_stop = 0
+        row = used
+        for c in range(count):
+            kept, stop = _explore_draw(states[parent], inputs[c], lengths[c], dt, traj, row,
+                                       boxes, k1, k2, k3, k4, tmp)
+            if c == 0:
+                first_stop = stop
+            for k in range(kept):
+                d2 = _ball_d2(traj[row + 1 + k], goal) if ball else 0.0
+                if ball and d2 <= tol2:
+                    hit = True
+                    best_row, best_k, best_d2, best_c = row, k, d2, c
+                    break
+                if count == 1 or _math.sqrt(d2) < _math.sqrt(best_d2):
+                    best_row, best_k, best_d2, best_c = row, k, d2, c
+            if hit:
+                break
+            row += lengths[c] + 1
+        if best_c < 0:  # no draw kept a state: the first says why
+            reasons[done] = first_stop
+            done += 1
+            continue
+        kept = best_k + 1
+        if best_row != used:
+            for r in range(kept + 1):
+                traj[used + r] = traj[best_row + r]
+        # the node at traj[used + kept], from parent under the chosen input
         x = traj[used + kept]
+        u = inputs[best_c]
         uru = 0.0
         uabs = 0.0
         for j in range(m):

@@ -495,11 +495,14 @@ def load_kernels(system: System) -> None:
     load. Each kernel runs once, on a state and parameters in the middle of their boxes and
     for zero or one step, through the function the planner calls it by (`integrate.rollout`,
     `integrate.propagate`, `integrate.rollout_batch`, or directly with C-contiguous float64
-    arrays), so the very signatures a plan uses are loaded. The LQR goal connection's loop
-    and the node index's scan, which a plan may need later, load on first use (milliseconds
-    once numba is initialised).
+    arrays), so the very signatures a plan uses are loaded. The compiled random-control
+    iterations (`integrate.explore_jit`, about 9 s to compile once per system and machine)
+    load here for a system with finite input limits; an unbounded system explores only
+    under a plan's ``u_max``, and its first such plan compiles them. The LQR goal
+    connection's loop and the node index's scan, which a plan may need later, load on first
+    use (milliseconds once numba is initialised).
     """
-    from rrtcolearn.integrate import propagate, rollout, rollout_batch
+    from rrtcolearn.integrate import propagate, rollout, rollout_batch, rollout_draws
 
     n = system.n_states
     x = np.ascontiguousarray((system.state_low + system.state_high) / 2, dtype=np.float64)
@@ -512,12 +515,27 @@ def load_kernels(system: System) -> None:
         lambda: system.input_max_abs_jit(z),
         lambda: propagate(system, x, np.zeros(system.n_inputs), 0.01, 0, -inf, inf),
         lambda: rollout_batch(system, z[None], 1.0, 0.01, 1, 1.0, 1.0, n),
+        lambda: rollout_draws(system, x, np.zeros((1, n)), np.zeros(1, np.int64), 1.0, 0.01,
+                              -inf, inf, None),
     )
+    if system.explore_jit is not None and system.input_limited and \
+            np.isfinite(system.input_limits()).all():
+        calls += (lambda: _load_explore(system),)
     for call in calls:
         try:
             call()
         except Exception:  # loading is what counts, not the outcome of the call
             pass
+
+
+def _load_explore(system: System) -> None:
+    """`integrate.explore_jit` called for no iteration, through `RRTCoLearn._explore` (so
+    with the argument types a plan passes: one signature)."""
+    x = (system.state_low + system.state_high) / 2
+    planner = RRTCoLearn(PlanningProblem.create(system, x, x, 1.0), None,
+                         PlannerSettings(control_edges=True))
+    rng = np.random.default_rng(0)
+    planner._explore(rng, planner._start(rng), 0)
 
 
 _FROM_CONFIG = object()
