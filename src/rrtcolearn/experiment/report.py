@@ -255,21 +255,24 @@ def _report(config: Config, summary: dict, figures: dict) -> str:
         lines += [f"## {pr.name}: u_max = {pr.u_max}, w = {pr.time_weight:g}, tolerance "
                   f"{pr.goal_tolerance:g}", "",
                   "| planner | runs | success | CPU median | CPU p90 | nodes | path cost | "
-                  "duration | max abs u | time vs RRT-CoLearn | cost vs RRT-CoLearn | "
-                  "nodes vs RRT-CoLearn |",
+                  "duration | max abs u | time vs RRT-CoLearn | RRT-CoLearn's CPU / this | "
+                  "cost vs RRT-CoLearn | nodes vs RRT-CoLearn |",
                   "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
-                  "| ---: |"]
+                  "| ---: | ---: |"]
         base = planners.get("rrtcolearn", {})
         for name, st in planners.items():
-            def rel(key, st=st, base=base):
+            def rel(key, st=st, base=base, inverse=False):
                 a, b = st.get(key), base.get(key)
+                if inverse:
+                    a, b = b, a
                 return f"{a / b:.3g}x" if a and b else "-"
             lines.append(
                 f"| {name} | {st['runs']} | {_fmt(st['success_rate'])} | "
                 f"{_fmt(st['time_median'], 1e3)} ms | {_fmt(st['time_p90'], 1e3)} ms | "
                 f"{_fmt(st['nodes_median'])} | {_fmt(st['path_cost_median'])} | "
                 f"{_fmt(st['path_duration_median'])} s | {_fmt(st['max_abs_u'])} | "
-                f"{rel('time_median')} | {rel('path_cost_median')} | {rel('nodes_median')} |")
+                f"{rel('time_median')} | {rel('time_median', inverse=True)} | "
+                f"{rel('path_cost_median')} | {rel('nodes_median')} |")
         lines.append("")
     if summary["skipped_planners"]:
         lines += ["Planners not run here: " + "; ".join(
