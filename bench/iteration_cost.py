@@ -173,11 +173,12 @@ def _saved_model(run_dir: str, sizes: list[int], window: int, overrides: tuple[s
                                      wrap_goal=cfg.plan.wrap_goal)
     planner = RRTCoLearn(problem, model.functions, model.planner_settings(cfg))
     probe = _Probe(planner, sizes, window)
-    planner.solve(probe, seed=seed)
+    plan = planner.solve(probe, seed=seed)
     ms = {s: round(1e3 * v, 4) for s, v in probe.result.items()}
     name = f"{model.system.name} ({run_dir})"
     print(f"{name}{' ' + ' '.join(overrides) if overrides else ''}: ms per iteration at "
-          + ", ".join(f"{s} nodes {v}" for s, v in ms.items()))
+          + ", ".join(f"{s} nodes {v}" for s, v in ms.items())
+          + f"; first {max(sizes)} nodes {_tree_hash(plan, max(sizes))}")
     parts = _part_costs(probe)
     for size, per in parts.items():
         print(f"  at {size} nodes, per call: " + ", ".join(
@@ -185,6 +186,19 @@ def _saved_model(run_dir: str, sizes: list[int], window: int, overrides: tuple[s
     out = {name: {"ms_per_iteration": ms, "parts": parts}}
     print(json.dumps(out))
     return out
+
+
+def _tree_hash(plan, n: int) -> str:
+    """A short hash of the tree's first ``n`` nodes, their parents, costs and durations: the
+    same on two commits whose planners grew the same tree (where each stops depends on when
+    it asks the termination condition)."""
+    import hashlib
+
+    t, n = plan.tree, min(n, plan.tree.n_nodes)
+    h = hashlib.sha256()
+    for a in (t.states[:n], t.parents[:n], t.costs[:n], t.durations[:n]):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:12]
 
 
 def _part_costs(probe: _Probe) -> dict:
