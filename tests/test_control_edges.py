@@ -257,3 +257,40 @@ def test_the_compiled_iterations_are_the_python_ones(limited, goal):
             assert _tree_of(a) == _tree_of(b)
             solved += a.solved
     assert solved >= 3 and any(batches)  # some plans end in a batch's edge
+
+
+def test_the_compiled_draws_are_the_python_ones(limited):
+    """The learned steering's draws integrated in one compiled call (`rollout_draws_jit`)
+    give what the same draws give one `rollout` at a time (a System without the kernel):
+    the same rows, |u*|, codes (including draws stopped at the box), and so the same plans."""
+    import dataclasses
+
+    from rrtcolearn.integrate import rollout_draws
+    from rrtcolearn.planning.rrt import RRTCoLearn
+    from rrtcolearn.planning.termination import TerminationCondition
+
+    system = limited.system
+    plain = dataclasses.replace(system, rollout_draws_jit=None)
+    rng = np.random.default_rng(5)
+    lams = rng.uniform(-3.0, 3.0, size=(40, 2))
+    steps = rng.integers(1, 400, size=40)
+    box = (np.array([-10.0, -3.0]), np.array([10.0, 3.0]))
+    codes_seen = set()
+    for x0 in ([0.2, 0.1], [-3.0, 0.0], [2.5, -2.9]):
+        a = rollout_draws(system, np.array(x0), lams, steps, 1.0, 0.01, *box, 2.0)
+        b = rollout_draws(plain, np.array(x0), lams, steps, 1.0, 0.01, *box, 2.0)
+        np.testing.assert_array_equal(a[3], b[3])  # codes
+        codes_seen.update(a[3].tolist())
+        for c in np.flatnonzero(a[3] == 0):  # kept draws: the same rows and |u*|
+            ra, rb = slice(a[2][c], a[2][c + 1]), slice(b[2][c], b[2][c + 1])
+            np.testing.assert_array_equal(a[0][ra], b[0][rb])
+            np.testing.assert_array_equal(a[1][ra], b[1][rb])
+    assert {0, 1} <= codes_seen
+    problem = pipeline.make_problem(system, limited.config, [-np.pi, 0.0], [0.0, 0.0], 0.1)
+    fast = RRTCoLearn(problem, limited.functions, limited.planner_settings())
+    slow = RRTCoLearn(dataclasses.replace(problem, system=plain), limited.functions,
+                      limited.planner_settings())
+    for seed in range(3):
+        a = fast.solve(TerminationCondition(None, 3000), seed)
+        b = slow.solve(TerminationCondition(None, 3000), seed)
+        assert _tree_of(a) == _tree_of(b)
