@@ -891,7 +891,7 @@ class RRTCoLearn:
         draw reaches the region. None when no draw has even one valid step."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         count = max(1, s.control_samples) if directed else 1
-        longest = max(1, round(s.max_duration / s.dt))
+        longest = self._longest_hold()
         inputs = rng.uniform(*self._control_box, size=(count, sys.n_inputs))
         lengths = rng.integers(1, longest + 1, size=count)
         # one compiled call for every draw; a draw's state outside the constraints (or not
@@ -1024,8 +1024,8 @@ class RRTCoLearn:
         nodes and counts), after the directed control expansion of the goal-biased iteration
         before them if `_expand` left it here (``run.directed``). Returns True when the last
         iteration drew the goal bias: its goal target, connections and expansion are
-        `solve`'s to run. Sets ``run.goal_node`` when a
-        node reached the goal region and ``run.stalled`` when the tree stalled."""
+        `solve`'s to run. Sets ``run.goal_node`` when a node reached the goal region and
+        ``run.stalled`` when the tree stalled."""
         prob, s = self.problem, self.settings
         tree, ex = run.tree, run.explore
         size = tree.n_nodes
@@ -1152,7 +1152,7 @@ class RRTCoLearn:
     def _explore_consts(self) -> _ExploreConsts | None:
         """`_explore`'s constants, or None where its iterations stay in Python: a system
         without compiled kernels, or obstacles (the validity checker is Python)."""
-        prob, sys, s = self.problem, self.problem.system, self.settings
+        prob, sys = self.problem, self.problem.system
         if sys.explore_jit is None or prob.validity:
             return None
         n, m = sys.n_states, sys.n_inputs
@@ -1168,7 +1168,12 @@ class RRTCoLearn:
         consts = np.array([[index.weight, index._low, index._period,
                             np.isin(np.arange(n), index._angles)] for index in self._indices],
                           dtype=np.float64)
-        return _ExploreConsts(max(1, round(s.max_duration / s.dt)), tol2, boxes, goal, consts)
+        return _ExploreConsts(self._longest_hold(), tol2, boxes, goal, consts)
+
+    def _longest_hold(self) -> int:
+        """The most RK4 steps a random-control edge holds its input: the data's longest
+        segment."""
+        return max(1, round(self.settings.max_duration / self.settings.dt))
 
     def _connect(self, rng: np.random.Generator, run: _Run) -> bool:
         """A goal-biased iteration's exact connections (shooting, the funnel, the LQR
