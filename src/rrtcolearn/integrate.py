@@ -128,6 +128,28 @@ def rollout_batch_jit(z0, w, dt, max_steps, max_cost, max_dist, n, u_max, scale=
 
 
 @_numba.njit(cache=True)
+def _hold(x0, u, length, dt, low, high, out, row, k1, k2, k3, k4, tmp):
+    # RK4 of x' = f(x, u) from x0 under the held input u for up to length steps into
+    # out[row], out[row + 1], ..., stopped after the first state outside [low, high] or not
+    # finite (that state written too): (states inside, stop: 0 none, 1 outside, 2 not
+    # finite). The one integration of a random-control draw (propagate_jit, explore_jit)
+    n = x0.shape[0]
+    x = x0
+    for s in range(length):
+        _rk4_plain_step(x, u, dt, k1, k2, k3, k4, tmp, out[row + s])
+        inside = True
+        finite = True
+        for i in range(n):
+            v = out[row + s, i]
+            inside = inside and low[i] <= v <= high[i]
+            finite = finite and _math.isfinite(v)
+        if not inside:
+            return s, 1 if finite else 2
+        x = out[row + s]
+    return length, 0
+
+
+@_numba.njit(cache=True)
 def propagate_jit(x0, inputs, lengths, dt, low, high):
     # RK4 of x' = f(x, u) from x0 under each constant input inputs[c] held for lengths[c]
     # steps, each draw stopping after its first state outside [low, high] or not finite
@@ -146,22 +168,10 @@ def propagate_jit(x0, inputs, lengths, dt, low, high):
     tmp = _np.empty(n)
     r = 0
     for j in range(c):
-        u = inputs[j]
-        x = x0
-        for s in range(lengths[j]):
-            _rk4_plain_step(x, u, dt, k1, k2, k3, k4, tmp, states[r])
-            inside = True
-            finite = True
-            for i in range(n):
-                v = states[r, i]
-                inside = inside and low[i] <= v <= high[i]
-                finite = finite and _math.isfinite(v)
-            x = states[r]
-            r += 1
-            counts[j] += 1
-            if not inside:
-                stops[j] = 1 if finite else 2
-                break
+        kept, stops[j] = _hold(x0, inputs[j], lengths[j], dt, low, high, states, r, k1, k2,
+                               k3, k4, tmp)
+        counts[j] = kept + (1 if stops[j] > 0 else 0)
+        r += counts[j]
     return states[:r], counts, stops
 
 
@@ -222,7 +232,7 @@ def closed_loop_jit(x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps, low,
 
 @_numba.njit(cache=True)
 def rollout_draws_jit(x0, lams, steps, w, dt, low, high, u_max):
-    # the learned steering's draws from x0 (planning/rrt.py, RRTCoLearn._rolled_draws):
+    # the learned steering's draws from x0 (planning/rrt.py, RRTCoLearn._draw_edges):
     # z = (x0, lams[c], 0) integrated for steps[c] RK4 steps as rollout_jit does, draw after
     # draw into one array (starts (c + 1,) its rows), with |u*| at every row (input_max_abs)
     # and a code per draw: 0 kept, 1 a state outside [low, high], 2 a value not finite (each
@@ -273,25 +283,12 @@ def rollout_draws_jit(x0, lams, steps, w, dt, low, high, u_max):
 
 @_numba.njit(cache=True)
 def _explore_draw(x0, u, length, dt, traj, row, boxes, k1, k2, k3, k4, tmp):
-    # RK4 of x' = f(x, u) from x0 for length steps into traj[row + 1 :] (x0 at row), stopped
-    # before the first state outside the constraint box or not finite: (states kept, stop:
-    # 0 none, 1 outside, 2 not finite), as propagate_jit integrates a draw
-    n = x0.shape[0]
-    for i in range(n):
+    # _hold within the constraint box (boxes rows 2, 3) into traj[row + 1 :], with x0 at
+    # row: (states kept, stop)
+    for i in range(x0.shape[0]):
         traj[row, i] = x0[i]
-    kept = 0
-    for s in range(length):
-        _rk4_plain_step(traj[row + kept], u, dt, k1, k2, k3, k4, tmp, traj[row + kept + 1])
-        inside = True
-        finite = True
-        for i in range(n):
-            v = traj[row + kept + 1, i]
-            inside = inside and boxes[2, i] <= v <= boxes[3, i]
-            finite = finite and _math.isfinite(v)
-        if not inside:
-            return kept, 1 if finite else 2
-        kept += 1
-    return kept, 0
+    return _hold(traj[row], u, length, dt, boxes[2], boxes[3], traj, row + 1, k1, k2, k3, k4,
+                 tmp)
 
 
 @_numba.njit(cache=True, inline="always")
