@@ -150,6 +150,15 @@ def _hold(x0, u, length, dt, low, high, out, row, k1, k2, k3, k4, tmp):
 
 
 @_numba.njit(cache=True)
+def hold_jit(x0, u, length, dt, box, out, scratch):
+    # _hold for a caller that keeps its own buffers (an OMPL propagator called for every
+    # step of every edge): box (2, n) the low and high, scratch (5, n), the states into
+    # out[0 :]; returns (states inside, stop) and nothing to box but two integers
+    return _hold(x0, u, length, dt, box[0], box[1], out, 0, scratch[0], scratch[1],
+                 scratch[2], scratch[3], scratch[4])
+
+
+@_numba.njit(cache=True)
 def propagate_jit(x0, inputs, lengths, dt, low, high):
     # RK4 of x' = f(x, u) from x0 under each constant input inputs[c] held for lengths[c]
     # steps, each draw stopping after its first state outside [low, high] or not finite
@@ -498,7 +507,7 @@ def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, 
 
 
 def define_kernels(namespace: dict) -> None:
-    """Compile ``rollout_jit``, ``rollout_batch_jit``, ``propagate_jit``,
+    """Compile ``rollout_jit``, ``rollout_batch_jit``, ``propagate_jit``, ``hold_jit``,
     ``closed_loop_jit``, ``rollout_draws_jit`` and ``explore_jit`` into a system module's
     namespace.
 

@@ -227,40 +227,45 @@ class OMPLPlanner:
             return obstacle_free is None or obstacle_free([state[j] for j in range(n)])
 
         # OMPL calls the propagator for every step of every edge: with the system's compiled
-        # kernel it is called directly on buffers filled in place (a third of the CPU of
-        # building arrays for `integrate.propagate` on each call; the same states)
-        kernel = system.propagate_jit
-        x_buf, u_buf = np.empty(n), np.empty((1, m))
-        steps_buf = np.empty(1, dtype=np.int64)
-        low_c, high_c = (np.ascontiguousarray(a, dtype=np.float64) for a in (clow, chigh))
+        # kernel it runs on buffers kept here and returns two integers (a third of the CPU
+        # of `integrate.propagate`'s arrays on each call, then half again; the same states)
+        kernel = system.hold_jit
+        x_buf, u_buf = np.empty(n), np.empty(m)
+        box = np.ascontiguousarray(np.vstack([clow, chigh]), dtype=np.float64)
+        scratch, out = np.empty((5, n)), [np.empty((32, n))]
 
         def propagate(start, control, duration, result) -> None:
             # OMPL checks the state at the end of each propagation step, so the first invalid
             # RK4 state inside it is handed back instead, which makes OMPL reject the step:
             # executed paths are valid at every RK4 step.
             counts["propagate_calls"] += 1
+            steps = round(duration / dt)
             if kernel is None:
                 traj = rk4_propagate(system, np.array([start[j] for j in range(n)]),
                                      np.array([control[j] for j in range(m)]), dt,
-                                     round(duration / dt), clow, chigh)[1:]
+                                     steps, clow, chigh)[1:]
+                last = len(traj) - 1
             else:
                 for j in range(n):
                     x_buf[j] = start[j]
                 for j in range(m):
-                    u_buf[0, j] = control[j]
-                steps_buf[0] = round(duration / dt)
-                traj = kernel(x_buf, u_buf, steps_buf, dt, low_c, high_c)[0]
-            if not len(traj):  # no RK4 step: the state stays where it was
+                    u_buf[j] = control[j]
+                if steps > len(out[0]):
+                    out[0] = np.empty((steps, n))
+                traj = out[0]
+                kept, stop = kernel(x_buf, u_buf, steps, dt, box, traj, scratch)
+                last = kept if stop else kept - 1  # the last state, a stopped one
+            if last < 0:  # no RK4 step: the state stays where it was
                 for j in range(n):
                     result[j] = start[j]
                 return
-            end = traj[-1]
-            if check_obstacles and len(traj) > 1:
-                ok = problem.validity(traj[:-1])
+            if check_obstacles and last > 0:
+                ok = problem.validity(traj[:last])
                 if not ok.all():
-                    end = traj[int(np.argmin(ok))]
+                    last = int(np.argmin(ok))
+            end = traj[last].tolist()
             for j in range(n):
-                result[j] = float(end[j])
+                result[j] = end[j]
 
         si.setStateValidityChecker(is_valid)
         si.setStatePropagator(propagate)

@@ -48,6 +48,8 @@ class System:
         (`rrtcolearn.integrate.propagate_draws`, `rrtcolearn.integrate.propagate`).
     closed_loop_jit : compiled RK4 of ``dynamics`` under a saturated linear feedback, the
         LQR goal connection's loop (`rrtcolearn.planning.lqr.GoalLQR.run`).
+    hold_jit : compiled RK4 of ``dynamics`` under one held input into the caller's buffers
+        (the OMPL peers' propagator, `rrtcolearn.baselines.ompl_planners`).
     rollout_draws_jit : compiled `rollout_jit` of a batch of costates from one state, checked
         (`rrtcolearn.integrate.rollout_draws`).
     explore_jit : the planner's random-control iterations compiled with ``dynamics``
@@ -85,6 +87,7 @@ class System:
     propagate_jit: Callable | None = None
     closed_loop_jit: Callable | None = None
     rollout_draws_jit: Callable | None = None
+    hold_jit: Callable | None = None
     explore_jit: Callable | None = None
 
     @property

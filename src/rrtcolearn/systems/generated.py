@@ -125,6 +125,7 @@ _GENERATED = {
     "propagate_jit": "propagate_jit",
     "closed_loop_jit": "closed_loop_jit",
     "rollout_draws_jit": "rollout_draws_jit",
+    "hold_jit": "hold_jit",
     "explore_jit": "explore_jit",
 }
 
