@@ -15,13 +15,16 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from rrtcolearn.integrate import rollout_batch
 from rrtcolearn.planning.shooting import newton
 from rrtcolearn.systems.base import System
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 _CHUNK = 2000  # backward simulations per batched RK4 call (bounds the memory)
 # continuation from the funnel state to the node: first, smallest and largest steps (as
@@ -106,6 +109,8 @@ class GoalFunnel:
         states, sims, steps, offsets = states[outside], sims[outside], steps[outside], \
             offsets[outside]
         scale = np.asarray(scale, dtype=np.float64)
+        from scipy.spatial import cKDTree  # (here: a plan's start-up does not import it)
+
         return cls(system, goal, states, sims.astype(np.int64), steps.astype(np.int64), lam,
                    offsets, scale, cKDTree(offsets * scale), float(time_weight), float(dt))
 

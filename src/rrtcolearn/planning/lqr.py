@@ -41,7 +41,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import solve_discrete_are
 
 from rrtcolearn.integrate import propagate
 from rrtcolearn.planning.problem import PlanningProblem
@@ -243,6 +242,8 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
     Q, R = np.diag(dt / half_x**2), np.diag(dt * r_diag)
     try:
         with np.errstate(all="ignore"):
+            from scipy.linalg import solve_discrete_are  # (on first use)
+
             P = solve_discrete_are(A, B, Q, R)
             K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
     except (ValueError, np.linalg.LinAlgError) as exc:

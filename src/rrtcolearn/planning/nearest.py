@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 # below this many points a compiled scan of all of them is cheaper than the k-d tree's query
 # (scipy's per-call overhead); the answers are the same either way (see `NodeIndex`)
@@ -78,7 +77,7 @@ class NodeIndex:
         self._points = np.empty((256, len(self.weight)))
         self._size = 0
         self._indexed = 0  # points [0, _indexed) are in the k-d tree
-        self._tree: cKDTree | None = None
+        self._tree = None  # scipy's cKDTree, once there are enough nodes
 
     def __len__(self) -> int:
         return self._size
@@ -109,6 +108,8 @@ class NodeIndex:
         self._points[i] = self._wrapped(np.asarray(x, dtype=np.float64))
 
     def _rebuild(self) -> None:
+        from scipy.spatial import cKDTree  # (on first use: a plan's start-up skips it)
+
         self._tree = cKDTree(self._points[: self._size].copy(),
                              boxsize=self._period if self._angles.size else None)
         self._indexed = self._size
