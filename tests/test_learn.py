@@ -109,6 +109,9 @@ def test_learned_functions_save_and_load_without_pickle(tmp_path):
     Q = np.hstack([data.x0[:50], data.x1[::-1][:50]])
     for a, b in zip(f.query(Q), g.query(Q), strict=True):
         np.testing.assert_array_equal(a, b)
+    # the neighbour index comes back from its saved leaf order: the same tree
+    for a, b in zip(f.cost_to_go_.index_._tree, g.cost_to_go_.index_._tree, strict=True):
+        np.testing.assert_array_equal(a, b)
     raw = bytearray((tmp_path / "f.npz").read_bytes())
     raw[len(raw) // 2] ^= 0xFF
     (tmp_path / "g.npz").write_bytes(bytes(raw))

@@ -50,3 +50,23 @@ def test_first_valid_is_the_summed_distance_test():
     first = index.first_valid(queries, order, 3, threshold)
     assert first == order[np.flatnonzero(valid[order])[0]]
     assert index.first_valid(queries, order[~valid[order]], 3, threshold) == -1
+
+
+@pytest.mark.parametrize("n", [0, 1, 31, 33, 5000])
+def test_the_tree_rebuilt_from_its_leaf_order_is_the_same(n):
+    """`NeighbourIndex(points, rows)` (a saved model's index) gives the arrays the median
+    searches give, and so the same answers; a leaf order that is not a permutation is
+    refused."""
+    points = np.random.default_rng(n).normal(size=(n, 4))
+    built = NeighbourIndex(points)
+    again = NeighbourIndex(points, built.rows)
+    for a, b in zip(built._tree, again._tree, strict=True):
+        np.testing.assert_array_equal(a, b)
+    if n > 1:
+        q = np.random.default_rng(1).normal(size=(20, 4))
+        for a, b in zip(built.query(q, 2), again.query(q, 2), strict=True):
+            np.testing.assert_array_equal(a, b)
+        bad = built.rows.copy()
+        bad[0] = bad[1]
+        with pytest.raises(ValueError, match="permutation"):
+            NeighbourIndex(points, bad)

@@ -49,16 +49,10 @@ def _sqdist(data, r, q):
 
 
 @numba.njit(cache=True)
-def _build(points, leaf_size):
-    """A balanced k-d tree: the points in leaf order (a copy), their original rows, each
-    node's bounding box, the number of inner nodes and each node's range of leaf positions.
-    Nodes are numbered as a heap (children 2i+1, 2i+2); ranges halve ([lo, mid), [mid, hi),
-    mid = (lo + hi) // 2) down to at most ``leaf_size`` points. A node splits at the median
-    of the widest side of its cell (the root's box cut by the splits above); the boxes are
-    then the tight ones of each node's points, built up from the leaves."""
-    n, dim = points.shape
-    data = points.copy()
-    rows = np.arange(n)
+def _layout(n, leaf_size):
+    """The tree's shape for n points: the number of inner nodes and each node's range of
+    leaf positions. Nodes are numbered as a heap (children 2i+1, 2i+2); ranges halve ([lo,
+    mid), [mid, hi), mid = (lo + hi) // 2) down to at most ``leaf_size`` points."""
     levels = 0
     size = n
     while size > leaf_size:
@@ -68,9 +62,49 @@ def _build(points, leaf_size):
     n_nodes = 2 * n_inner + 1
     lo_of = np.zeros(n_nodes, np.int64)
     hi_of = np.zeros(n_nodes, np.int64)
-    box = np.empty((n_nodes, 2, dim))  # per node: the least and greatest coordinates
-    cell = np.empty((n_nodes, 2, dim))
     hi_of[0] = n
+    for node in range(n_inner):
+        lo, hi = lo_of[node], hi_of[node]
+        mid = (lo + hi) // 2
+        a, b = 2 * node + 1, 2 * node + 2
+        lo_of[a], hi_of[a], lo_of[b], hi_of[b] = lo, mid, mid, hi
+    return n_inner, lo_of, hi_of
+
+
+@numba.njit(cache=True)
+def _boxes(data, n_inner, lo_of, hi_of):
+    """Each node's tight bounding box (least and greatest coordinates) of its points in leaf
+    order ``data``, built up from the leaves."""
+    n_nodes, dim = lo_of.shape[0], data.shape[1]
+    box = np.empty((n_nodes, 2, dim))
+    for node in range(n_nodes - 1, -1, -1):
+        if node >= n_inner:
+            for j in range(dim):
+                box[node, 0, j] = np.inf
+                box[node, 1, j] = -np.inf
+            for r in range(lo_of[node], hi_of[node]):
+                for j in range(dim):
+                    box[node, 0, j] = min(box[node, 0, j], data[r, j])
+                    box[node, 1, j] = max(box[node, 1, j], data[r, j])
+        else:
+            for j in range(dim):
+                box[node, 0, j] = min(box[2 * node + 1, 0, j], box[2 * node + 2, 0, j])
+                box[node, 1, j] = max(box[2 * node + 1, 1, j], box[2 * node + 2, 1, j])
+    return box
+
+
+@numba.njit(cache=True)
+def _build(points, leaf_size):
+    """A balanced k-d tree: the points in leaf order (a copy), their original rows, each
+    node's bounding box, the number of inner nodes and each node's range of leaf positions
+    (`_layout`). A node splits at the median of the widest side of its cell (the root's box
+    cut by the splits above); the boxes are then the tight ones of each node's points
+    (`_boxes`)."""
+    n, dim = points.shape
+    data = points.copy()
+    rows = np.arange(n)
+    n_inner, lo_of, hi_of = _layout(n, leaf_size)
+    cell = np.empty((lo_of.shape[0], 2, dim))
     for j in range(dim):
         cell[0, 0, j] = np.inf
         cell[0, 1, j] = -np.inf
@@ -82,7 +116,6 @@ def _build(points, leaf_size):
         lo, hi = lo_of[node], hi_of[node]
         mid = (lo + hi) // 2
         a, b = 2 * node + 1, 2 * node + 2
-        lo_of[a], hi_of[a], lo_of[b], hi_of[b] = lo, mid, mid, hi
         cell[a] = cell[node]
         cell[b] = cell[node]
         if hi - lo < 2:
@@ -118,20 +151,18 @@ def _build(points, leaf_size):
                 break
         cell[a, 1, best] = data[mid, best]
         cell[b, 0, best] = data[mid, best]
-    for node in range(n_nodes - 1, -1, -1):
-        if node >= n_inner:
-            for j in range(dim):
-                box[node, 0, j] = np.inf
-                box[node, 1, j] = -np.inf
-            for r in range(lo_of[node], hi_of[node]):
-                for j in range(dim):
-                    box[node, 0, j] = min(box[node, 0, j], data[r, j])
-                    box[node, 1, j] = max(box[node, 1, j], data[r, j])
-        else:
-            for j in range(dim):
-                box[node, 0, j] = min(box[2 * node + 1, 0, j], box[2 * node + 2, 0, j])
-                box[node, 1, j] = max(box[2 * node + 1, 1, j], box[2 * node + 2, 1, j])
-    return data, rows, box, n_inner, lo_of, hi_of
+    return data, rows, _boxes(data, n_inner, lo_of, hi_of), n_inner, lo_of, hi_of
+
+
+@numba.njit(cache=True)
+def _from_rows(points, rows, leaf_size):
+    """`_build`'s tree from its ``rows`` (the leaf order it found): the same arrays without
+    the median searches."""
+    data = np.empty_like(points)
+    for r in range(rows.shape[0]):
+        data[r] = points[rows[r]]
+    n_inner, lo_of, hi_of = _layout(points.shape[0], leaf_size)
+    return data, rows, _boxes(data, n_inner, lo_of, hi_of), n_inner, lo_of, hi_of
 
 
 @numba.njit(cache=True, inline="always")
@@ -264,17 +295,32 @@ def _first_valid(data, box, n_inner, lo_of, hi_of, x, order, k, threshold):
 class NeighbourIndex:
     """Euclidean k-NN over fixed points (the paper's distance on (x0, x1))."""
 
-    def __init__(self, points: np.ndarray):
+    def __init__(self, points: np.ndarray, rows: np.ndarray | None = None):
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         if self.points.ndim != 2:
             raise ValueError(f"points must be 2-D (N, D), got shape {self.points.shape}")
-        self._tree = _build(self.points, _LEAF_SIZE)
+        if rows is None:
+            self._tree = _build(self.points, _LEAF_SIZE)
+        else:  # a saved leaf order (`rows`): checked to be a permutation of the points
+            rows = np.ascontiguousarray(rows, dtype=np.int64)
+            n = len(self.points)
+            if rows.shape != (n,) or (n and (rows.min() < 0 or rows.max() >= n or not
+                                             np.all(np.bincount(rows, minlength=n) == 1))):
+                raise ValueError("the saved neighbour index is not a permutation of the "
+                                 "points")
+            self._tree = _from_rows(self.points, rows, _LEAF_SIZE)
         # load the compiled queries now (numba's cache), not in the first plan
         self.query(self.points[:0], 1)
         self.first_valid(self.points[:0], np.empty(0, np.int64), 1, 0.0)
 
     def __len__(self) -> int:
         return self.points.shape[0]
+
+    @property
+    def rows(self) -> np.ndarray:
+        """The points' leaf order: all `NeighbourIndex(points, rows)` needs to rebuild the
+        tree without its median searches."""
+        return self._tree[1]
 
     def query(self, x: np.ndarray, k: int, max_distance: float = np.inf
               ) -> tuple[np.ndarray, np.ndarray]:
