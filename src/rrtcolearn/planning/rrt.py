@@ -365,7 +365,7 @@ class _ExploreConsts(NamedTuple):
     """What `integrate.explore_jit` takes that does not change during a solve."""
 
     longest: int  # the most RK4 steps an input is held
-    tol2: float  # the goal ball's tolerance squared
+    floats: np.ndarray  # dt, goal bias, the goal ball's tolerance squared, time weight
     boxes: np.ndarray  # (8, max(n, m)): the rows `integrate.explore_jit` names
     goal: np.ndarray  # (3, n): the ball's goal, weights and angle coordinates (1.0)
     index_consts: np.ndarray  # (indices, 4, n): each node index's weight, low, period, angles
@@ -907,7 +907,7 @@ class RRTCoLearn:
             traj = np.empty((k + 2, x0.size))
             traj[0] = x0
             traj[1:] = flat[begin : begin + k + 1]
-            rate = s.time_weight + 0.5 * float(u @ self._input_weight @ u)
+            rate = self._hold_rate(u)
             return Edge(traj, k + 1, (k + 1) * s.dt * rate, float(np.abs(u).max()), hit,
                         control=u, end_distance=float(d))
         reasons = _STOP_REASONS[stops]  # a copy: "obstacle" may replace one below
@@ -949,7 +949,7 @@ class RRTCoLearn:
         k = j - begin
         u = inputs[c]
         traj = np.vstack([x0[None], flat[begin : j + 1]])
-        rate = s.time_weight + 0.5 * float(u @ self._input_weight @ u)
+        rate = self._hold_rate(u)
         end_distance = float(dist[j]) if dist is not None else \
             float(prob.goal_distance(traj[-1:])[0])
         return Edge(traj, k + 1, (k + 1) * s.dt * rate, float(np.abs(u).max()), hit,
@@ -1038,9 +1038,8 @@ class RRTCoLearn:
                          len(points) - 1, size, run.directed, max(1, s.control_samples)],
                         dtype=np.int64)
         run.directed = -1
-        floats = np.array([s.dt, s.goal_bias, ex.tol2, s.time_weight])
         code, iterations, nodes, traj, starts, node_it, ends, reasons = \
-            prob.system.explore_jit(rng, ints, floats, ex.boxes, ex.goal, ex.index_consts,
+            prob.system.explore_jit(rng, ints, ex.floats, ex.boxes, ex.goal, ex.index_consts,
                                     points[0], points[-1], tree.states, tree.parents,
                                     tree.controls, tree.durations, tree.costs,
                                     tree.max_abs_u, run.shifts, self._input_weight)
@@ -1103,8 +1102,7 @@ class RRTCoLearn:
         u = tree.controls[node]
         tree.states[node] = x
         tree.durations[node] = steps * s.dt
-        tree.costs[node] = steps * s.dt * (s.time_weight + 0.5 * float(
-            u @ self._input_weight @ u))
+        tree.costs[node] = steps * s.dt * self._hold_rate(u)
         for index in self._indices:
             index.set(node, x[:n])
         run.shifts[node] = prob.system.wrap_shift(x[None])[0]
@@ -1152,7 +1150,7 @@ class RRTCoLearn:
     def _explore_consts(self) -> _ExploreConsts | None:
         """`_explore`'s constants, or None where its iterations stay in Python: a system
         without compiled kernels, or obstacles (the validity checker is Python)."""
-        prob, sys = self.problem, self.problem.system
+        prob, sys, s = self.problem, self.problem.system, self.settings
         if sys.explore_jit is None or prob.validity:
             return None
         n, m = sys.n_states, sys.n_inputs
@@ -1168,7 +1166,13 @@ class RRTCoLearn:
         consts = np.array([[index.weight, index._low, index._period,
                             np.isin(np.arange(n), index._angles)] for index in self._indices],
                           dtype=np.float64)
-        return _ExploreConsts(self._longest_hold(), tol2, boxes, goal, consts)
+        floats = np.array([s.dt, s.goal_bias, tol2, s.time_weight])
+        return _ExploreConsts(self._longest_hold(), floats, boxes, goal, consts)
+
+    def _hold_rate(self, u: np.ndarray) -> float:
+        """The running cost w + u^T R u / 2 of a held input ``u`` (random-control and LQR
+        edges; `integrate.explore_jit` computes it in the same order)."""
+        return self.settings.time_weight + 0.5 * float(u @ self._input_weight @ u)
 
     def _longest_hold(self) -> int:
         """The most RK4 steps a random-control edge holds its input: the data's longest
@@ -1266,7 +1270,7 @@ class RRTCoLearn:
         chain = []
         for a, b in pairwise(breaks):
             u = us[a].copy()
-            rate = s.time_weight + 0.5 * float(u @ self._input_weight @ u)
+            rate = self._hold_rate(u)
             last = b == len(us)
             chain.append(Edge(out.states[a : b + 1].copy(), b - a, (b - a) * s.dt * rate,
                               float(np.abs(u).max()), last, control=u,
