@@ -579,7 +579,7 @@ class RRTCoLearn:
         for _ in range(self.settings.max_resample):
             params = self._sample_params(rng, prediction, sigma)
             if self._start_edge(x0, params, lam, z0):
-                return self._integrate_edge(x0, params, lam, z0)
+                return self._draw_edges(x0, params[None], lam[None])
         return None
 
     def _draws(self, rng, x0: np.ndarray, prediction: np.ndarray, sigma: float, count: int
@@ -682,12 +682,6 @@ class RRTCoLearn:
         z0[n : 2 * n] = lam
         return self._within_limit(z0)
 
-    def _integrate_edge(self, x0: np.ndarray, params: np.ndarray, lam: np.ndarray,
-                        z0: np.ndarray):
-        """The edge of `_edge` for parameters whose start `_start_edge` accepted: the one
-        draw of `_draw_edges`."""
-        return self._draw_edges(x0, params[None], lam[None])
-
     def _connect_goal(self, tree: PlannerData, shifts: np.ndarray, tried: np.ndarray,
                       weight: np.ndarray, lam: np.ndarray, z0: np.ndarray):
         """An edge from the nearest untried node to the goal by shooting, or None.
@@ -750,7 +744,7 @@ class RRTCoLearn:
         like every edge; None unless it reaches the goal region."""
         if not self._start_edge(x0, params, lam, z0):
             return None
-        edge = self._integrate_edge(x0, params, lam, z0)
+        edge = self._draw_edges(x0, params[None], lam[None])
         return edge if edge is not None and edge.hit else None
 
     def _connect_funnel(self, tree: PlannerData, search: _FunnelSearch, lam: np.ndarray,
