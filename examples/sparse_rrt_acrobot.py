@@ -129,12 +129,20 @@ def end_effector(theta1, theta2):
                                         np.sin(t1) + np.sin(t1 + t2)], axis=-1)
 
 
+_GOAL_POINT = end_effector(GOAL[0], GOAL[1])
+
+
 def task_goal_distance(states) -> np.ndarray:
     """Distance (N,) of states (N, 4) to sparse_rrt's goal: the end effector's distance to the
     goal's; the goal is reached within `TASK_GOAL_RADIUS` (the plan's goal tolerance)."""
     states = np.atleast_2d(states)
-    goal = end_effector(GOAL[0], GOAL[1])
-    return np.linalg.norm(end_effector(states[:, 0], states[:, 1]) - goal, axis=-1)
+    t1 = states[:, 0] - np.pi / 2
+    t12 = t1 + states[:, 1]
+    # (the planner asks this of every state it integrates: plain arithmetic, the goal's point
+    # computed once)
+    dx = LINK_LENGTH_TASK * (np.cos(t1) + np.cos(t12)) - _GOAL_POINT[0]
+    dy = LINK_LENGTH_TASK * (np.sin(t1) + np.sin(t12)) - _GOAL_POINT[1]
+    return np.sqrt(dx * dx + dy * dy)
 
 
 def in_task_goal(states) -> np.ndarray:
