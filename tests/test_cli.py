@@ -301,7 +301,7 @@ def test_plan_queries_from_a_file(tiny_run, tmp_path):
     ('{"start": [0, 0], "goal": [0, 0, 1]}\n', "needs 2 values"),
     ('{"start": [0, 0], "goal": [0, 0], "tolerance": 1}\n', "unknown field 'tolerance'"),
     ('{"start": [0, 0], "goal": [0, 0]}\nnot json\n', "line 2: not JSON"),
-    ('{"start": [9, 0], "goal": [0, 0]}\n', "query 0: start theta"),
+    ('{"start": [9, 0], "goal": [0, 0]}\n', "line 1: start theta"),
     ('{"start": [0, 0], "goal": [0, 0], "seed": -1}\n', "seed must be a non-negative"),
     ("", "no queries"),
 ])
@@ -363,3 +363,65 @@ def test_progress_is_lines_on_stderr_without_a_terminal(capsys):
         p.update(t, description="clean", completed=7)
     err = capsys.readouterr().err.splitlines()
     assert err[0].endswith("generate: 3/10") and err[1].endswith("clean: 7/10")
+
+
+def test_a_model_of_a_name_registered_elsewhere(tmp_path, monkeypatch):
+    """A name given to `register` lives in one Python session: the command line says so
+    and plans (and exports) the model with --system module:attribute of the same system."""
+    from examples.damped_pendulum import make_damped_pendulum
+
+    from rrtcolearn import pipeline, systems
+    from rrtcolearn.config import load_config
+
+    monkeypatch.chdir(Path(__file__).parents[1])
+    monkeypatch.setattr(systems, "_REGISTRY", dict(systems._REGISTRY))
+    monkeypatch.setattr(systems, "_CONFIGS", dict(systems._CONFIGS))
+    systems.register("damped_pendulum", make_damped_pendulum)
+    cfg = load_config(overrides=['system.name="damped_pendulum"', "generate.n_simulations=3000",
+                                 "clean.k_max=500"])
+    run = tmp_path / "registered"
+    pipeline.generate(cfg, run)
+    pipeline.clean(cfg, run)
+    pipeline.fit(cfg, run)
+    del systems._REGISTRY["damped_pendulum"]  # as in a new session
+    query = ["--start=-3.1,0", "--goal", "0,0", "--goal-tolerance", "0.3",
+             "--set", "plan.max_iterations=300"]
+    result = invoke("plan", "--model", str(run), *query, "--out", str(tmp_path / "p.json"))
+    assert_one_line_error(result, contains="not registered in this process")
+    result = invoke("plan", "--model", str(run), "--system", "cartpole", *query,
+                    "--out", str(tmp_path / "p.json"))
+    assert_one_line_error(result, contains="builds system 'cartpole'")
+    spec = "examples.damped_pendulum:make_damped_pendulum"
+    result = invoke("plan", "--model", str(run), "--system", spec, *query,
+                    "--out", str(tmp_path / "p.json"))
+    assert result.exit_code == 0, result.output
+    plan = read_plan(tmp_path / "p.json")
+    assert plan["system"] == "damped_pendulum" and plan["config"]["system"]["name"] == spec
+    result = invoke("export", str(tmp_path / "p.json"))  # the plan names its module
+    assert result.exit_code == 0, result.output
+
+
+def test_plan_refuses_settings_it_would_ignore(tiny_run, tmp_path):
+    """Only [plan] and a plan-time u_max change at plan time; a value equal to the model's
+    (a configuration file shared with `run`) is fine, another is refused, not recorded in
+    the plan file and ignored."""
+    query = ["--start=-3,0", "--goal", "0,0", "--out", str(tmp_path / "p.json")]
+    for setting in ("system.time_weight=0.1", "learn.n_neighbors=10", 'system.name="cartpole"'):
+        result = invoke("plan", "--model", str(tiny_run), *query, "--set", setting)
+        assert_one_line_error(result, contains=f"{setting.split('=')[0]}: a plan uses the "
+                              "model's settings")
+    shared = tmp_path / "shared.toml"
+    shared.write_text('[system]\nname = "pendulum"\ntime_weight = 1.0\n[plan]\ngoal_bias = 0.3\n')
+    result = invoke("plan", "--model", str(tiny_run), *query, "--config", str(shared))
+    assert result.exit_code == 0, result.output
+    assert read_plan(tmp_path / "p.json")["config"]["plan"]["goal_bias"] == 0.3
+
+
+@pytest.mark.parametrize("setting", ["plan.goal_bias=true", "plan.stall_iterations=false",
+                                     "generate.n_simulations=true", "plan.start=[true,0]",
+                                     "plan=3"])
+def test_true_and_false_are_no_numbers(setting, tmp_path):
+    result = invoke("generate", "--out", str(tmp_path / "x"), "--set", setting)
+    assert_one_line_error(result, contains="section" if setting == "plan=3"
+                          else "not true/false")
+    assert not (tmp_path / "x").exists()

@@ -294,3 +294,38 @@ def test_the_compiled_draws_are_the_python_ones(limited):
         a = fast.solve(TerminationCondition(None, 3000), seed)
         b = slow.solve(TerminationCondition(None, 3000), seed)
         assert _tree_of(a) == _tree_of(b)
+
+
+def test_a_solve_compiles_nothing_while_its_clock_runs(limited):
+    """`load_kernels` (a fit, a load, and a solve before its clock) loads every kernel a plan
+    calls with the very argument types the plan passes: plans that explore with random
+    controls and try the LQR connection add no compiled signature."""
+    from rrtcolearn.planning.rrt import load_kernels
+
+    sys = limited.system
+    load_kernels(sys, explore=True, lqr=True)
+    kernels = ("costate_from_params_jit", "rollout_jit", "input_max_abs_jit", "propagate_jit",
+               "rollout_batch_jit", "rollout_draws_jit", "explore_jit", "closed_loop_jit")
+    before = {k: len(getattr(sys, k).signatures) for k in kernels}
+    assert all(before.values()), before
+    cfg = _with(limited, control_edges=True, goal_lqr=True)
+    for seed in range(3):
+        p = pipeline.plan(limited, [-np.pi, 0.0], [0.0, 0.0], 0.1, seed, config=cfg,
+                          max_iterations=3000, time_limit=None)
+        assert p.extra["goal_lqr"]["tries"] > 0
+    assert {k: len(getattr(sys, k).signatures) for k in kernels} == before
+
+
+def test_a_limit_that_stops_a_growing_tree_is_named_as_the_cause():
+    from rrtcolearn.planning.rrt import diagnose
+
+    line = diagnose({"added": 1, "out_of_reach": 1}, False, 2, False, (2.0, 1.9))
+    assert line.startswith("limit reached after 2 iterations with 2 nodes")
+    assert "the tree was still growing — raise the time or iteration limit" in line
+    assert "most common rejection: out of reach, in 1" in line
+    # a rejection that stopped most iterations is named with its advice
+    line = diagnose({"added": 20, "invalid_query": 18, "out_of_reach": 29}, False, 10, False)
+    assert "27% of the iterations: invalid query — the validity model V" in line
+    line = diagnose({"invalid_query": 2000}, True, 1, False)
+    assert line.startswith("the tree stopped growing (1 node")
+    assert diagnose({}, False, 1, False).startswith("no iteration ran")

@@ -2,12 +2,20 @@
 
 import io
 import json
+import os
 import zipfile
 
 import numpy as np
 import pytest
 
-from rrtcolearn.data.store import digest, load_arrays, load_dataset, save_arrays, save_dataset
+from rrtcolearn.data.store import (
+    atomic_write_bytes,
+    digest,
+    load_arrays,
+    load_dataset,
+    save_arrays,
+    save_dataset,
+)
 from rrtcolearn.errors import ArtefactError
 
 
@@ -91,3 +99,28 @@ def test_a_zip_version_zipfile_does_not_implement_is_a_clear_error(tmp_path):
     path.write_bytes(bytes(raw))
     with pytest.raises(ArtefactError, match="truncated or corrupt"):
         load_arrays(path, "rrtcolearn.dataset")
+
+
+def test_random_bytes_are_no_pickle(tmp_path):
+    """np.load takes any file that is neither a zip nor an .npy for a pickle: such a file
+    is called damaged, not "data that would need unpickling"."""
+    path = tmp_path / "functions.npz"
+    path.write_bytes(np.random.default_rng(0).bytes(3000))
+    with pytest.raises(ArtefactError, match="not a zip archive"):
+        load_arrays(path, "x")
+
+
+def test_write_errors_name_the_users_path(tmp_path, monkeypatch):
+    target = tmp_path / "plan.json"
+    (tmp_path / "dir").mkdir()
+    with pytest.raises(IsADirectoryError, match="give a file name") as info:
+        atomic_write_bytes(tmp_path / "dir", b"x")
+    assert info.value.filename == str(tmp_path / "dir")
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(args[0]))
+
+    monkeypatch.setattr(os, "open", refuse)
+    with pytest.raises(PermissionError) as info:
+        atomic_write_bytes(target, b"x")
+    assert info.value.filename == str(target) and ".tmp" not in str(info.value)

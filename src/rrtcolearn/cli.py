@@ -497,17 +497,15 @@ def plan(
                             ("plan", "anytime"): anytime,
                             ("system", "u_max"): u_max})
         # validate everything before the model is loaded: the query, the config, the files
-        model_info = pipeline.read_model_info(run_dir)
+        model_info = pipeline.read_model_info(run_dir, system_name)
         _, model_cfg, system = model_info
-        if system_name is not None and system_name != model_cfg.system.name:
-            raise ConfigError(f"--system {system_name}: the model in {run_dir} was fitted for "
-                              f"{model_cfg.system.name!r}")
         if seed is not None and seed < 0:
             raise ConfigError("--seed must be a non-negative integer")
         # the model's own configuration is the base; only its plan section may change here
         cfg = load_config(config, list(set_ or []), base={
             "plan": model_cfg.plan.model_dump(),
             "system": model_cfg.system.model_dump(exclude_none=True)}, options=options)
+        _plan_time_settings(config, list(set_ or []), model_cfg)
         cfg = add_obstacles(cfg, list(obstacle or []))
         if queries is not None:
             if plot:
@@ -534,6 +532,34 @@ def plan(
     _guard(body)
 
 
+def _plan_time_settings(path: Path | None, overrides: list[str], model: Config) -> None:
+    """ConfigError for a setting `plan` cannot apply: the model fixes every section but
+    [plan], and of the system only a plan-time input limit (u_max, by truncation) may
+    change. A setting equal to the model's is fine (a file shared with `run`); another
+    value would otherwise be recorded in the plan file and ignored."""
+    from rrtcolearn.config import parse_override, read_toml
+
+    # (section, key) -> value given: --set over the file
+    given = {tuple(parts): value for parts, value in map(parse_override, overrides)}
+    for section, values in (read_toml(path) if path is not None else {}).items():
+        for key, value in (values.items() if isinstance(values, dict) else [(None, values)]):
+            given.setdefault((section,) if key is None else (section, key), value)
+    own = model.model_dump(mode="json")
+    fixed = []
+    for parts, value in given.items():
+        if parts[0] == "plan" or parts == ("system", "u_max"):
+            continue
+        node = own
+        for p in parts:
+            node = node.get(p) if isinstance(node, dict) else None
+        if node != value:
+            fixed.append(".".join(parts))
+    if fixed:
+        raise ConfigError(f"{', '.join(fixed)}: a plan uses the model's settings; only [plan] "
+                          "and system.u_max may change at plan time (refit the model to "
+                          "change the others)")
+
+
 def _plan_queries(run_dir: Path, cfg: Config, system, path: Path, out: Path | None,
                   workers: int | None, given: bool) -> None:
     """`plan --queries`: every query of the file, one plan file each, and a summary."""
@@ -547,11 +573,11 @@ def _plan_queries(run_dir: Path, cfg: Config, system, path: Path, out: Path | No
         raise ConfigError("--queries takes start, goal and seed from the file: drop "
                           "--start, --goal and --seed")
     qs = read_queries(path, cfg.plan.goal_tolerance, system.n_states)
-    for i, q in enumerate(qs):  # every query checked before any is planned
+    for q in qs:  # every query checked before any is planned
         try:
             pipeline.make_problem(system, cfg, q.start, q.goal, q.goal_tolerance)
         except ValueError as exc:
-            raise ConfigError(f"{path}: query {i}: {exc}") from None
+            raise ConfigError(f"{path}, line {q.line}: {exc}") from None
     out_dir = out if out is not None else run_dir / "queries"
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"--out {out_dir} is a file; with --queries give a directory")
@@ -670,6 +696,7 @@ def export(
     fmt: Annotated[str, typer.Option("--format", help="csv or npz")] = "csv",
     out: Annotated[Path | None, typer.Option(
         "--out", help="output file (default: the plan file with .csv or .npz)")] = None,
+    system_name: SystemOpt = None,
 ) -> None:
     """Time, state, input and costate samples along a plan's path, re-simulated from its
     edges (the trajectory to execute)."""
@@ -685,7 +712,7 @@ def export(
         if dt is not None and not dt > 0:
             raise ConfigError(f"--dt {dt}: give a positive step")
         d = pipeline.read_plan(plan_file)
-        system = pipeline.plan_system(d)
+        system = pipeline.plan_system(d, system_name)
         try:
             samples = sample_path(system, d, dt)
         except ValueError as exc:

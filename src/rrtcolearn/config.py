@@ -11,7 +11,7 @@ import difflib
 import math
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 import tomli_w
 from pydantic import (
@@ -26,8 +26,27 @@ from pydantic import (
 from rrtcolearn.errors import ConfigError
 
 
+def _takes_bool(annotation: Any) -> bool:
+    """Whether a field's type admits true/false (bool, or a union or list holding it)."""
+    return annotation is bool or any(_takes_bool(a) for a in get_args(annotation))
+
+
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_numbers(cls, data: Any) -> Any:
+        # pydantic reads true/false as 1/0 where a number is expected: a mistyped setting
+        # would pass silently (plan.goal_bias=true is a goal bias of 1)
+        if isinstance(data, dict):
+            for key, v in data.items():
+                field = cls.model_fields.get(key)
+                flags = isinstance(v, bool) or (isinstance(v, list) and
+                                                any(isinstance(x, bool) for x in v))
+                if field is not None and flags and not _takes_bool(field.annotation):
+                    raise ValueError(f"{key}: must be a number or text, not true/false")
+        return data
 
     @field_validator("*", mode="after")
     @classmethod
@@ -62,7 +81,8 @@ class SystemConfig(_Section):
         umax = self.u_max
         values = [] if umax is None else (umax if isinstance(umax, list) else [umax])
         if any(not v > 0 for v in values) or (isinstance(umax, list) and not umax):
-            raise ValueError("u_max must be positive (one value, or one per input)")
+            raise ValueError(f"u_max must be positive (one value, or one per input), got "
+                             f"{umax!r}")
         if umax is not None and (self.u_low is not None or self.u_high is not None):
             raise ValueError("give either u_max or u_low/u_high, not both")
         if (self.u_low is None) != (self.u_high is None):
@@ -387,7 +407,9 @@ def _format_error(exc: ValidationError) -> str:
         hint = f" (did you mean {close[0]!r}?)" if close else f" (known keys: {', '.join(known)})"
         return f"config: unknown key {key!r}{hint}"
     msg = err["msg"].removeprefix("Value error, ")
-    got = f" (got {err['input']!r})" if "input" in err and err["type"] != "missing" else ""
+    # the value given, not a whole section's (a section-wide check names its key itself)
+    got = f" (got {err['input']!r})" if "input" in err and err["type"] != "missing" and \
+        not isinstance(err["input"], dict) else ""
     return f"config: {key}: {msg}{got}"
 
 
@@ -459,6 +481,11 @@ def parse_override(item: str) -> tuple[list[str], Any]:
 def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
     for item in overrides:
         parts, value = parse_override(item)
+        field = Config.model_fields.get(parts[0]) if len(parts) == 1 else None
+        if field is not None and isinstance(field.annotation, type) and \
+                issubclass(field.annotation, BaseModel):
+            raise ConfigError(f"--set {item!r}: {parts[0]!r} is a section: give "
+                              f"{parts[0]}.key=value")
         node = data
         for p in parts[:-1]:
             nxt = node.setdefault(p, {})

@@ -41,7 +41,7 @@ from rrtcolearn.data.store import (
 from rrtcolearn.errors import ArtefactError, ConfigError, EnvironmentProblem
 from rrtcolearn.learn.models import FUNCTIONS_FORMAT, LearnedFunctions
 from rrtcolearn.planning.problem import PlanningProblem
-from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
+from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn, load_kernels
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan
 from rrtcolearn.systems import make
@@ -452,12 +452,25 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
         "functions_sha256": functions_sha,
         "config": config.model_dump(mode="json"),
     })
+    return _fitted_model(system, config, functions)
+
+
+def _fitted_model(system: System, config: Config, functions: LearnedFunctions
+                  ) -> FittedModel:
+    """The model of a fit or a load, with the kernels its plans call loaded (compiled the
+    first time, once per system and machine): the first plan costs what later ones do."""
+    load_kernels(system, explore=system.input_limited and
+                 bool(np.isfinite(system.input_limits()).all()))
     return FittedModel(system, config, functions, functions.max_duration_,
                        config.generate.max_state_distance)
 
 
-def read_model_info(run_dir: str | Path) -> tuple[dict, Config, System]:
-    """The checked ``model.json`` of a run directory, its configuration and its system."""
+def read_model_info(run_dir: str | Path, system: str | None = None
+                    ) -> tuple[dict, Config, System]:
+    """The checked ``model.json`` of a run directory, its configuration and its system.
+    ``system`` (a registered name or module:attribute) rebuilds the system by another name
+    than the model records, e.g. a module's function for a name that was registered in
+    another Python session; it must build a system of the recorded name."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ArtefactError(f"run directory not found: {run_dir}")
@@ -466,7 +479,37 @@ def read_model_info(run_dir: str | Path) -> tuple[dict, Config, System]:
         config = Config.model_validate(info["config"])
     except Exception:
         raise ArtefactError(f"{run_dir / MODEL_FILE} holds an invalid configuration") from None
-    return info, config, system_from_config(config)
+    config, built = recorded_system(config, info.get("system"), system, f"the model in {run_dir}")
+    return info, config, built
+
+
+def recorded_system(config: Config, recorded: str | None, system: str | None, what: str
+                    ) -> tuple[Config, System]:
+    """The system a model or plan file records (``recorded``: its `System.name`, under
+    ``config.system.name``), and the configuration it is built from. ``system`` (a
+    registered name or module:attribute) builds it by another name, which the returned
+    configuration then carries; it must build a system named ``recorded``. A name that
+    only another Python session registered is a ConfigError that says how to name it."""
+    from rrtcolearn.systems import list_systems
+
+    if system is not None and system != config.system.name:
+        try:
+            other = make(system)
+        except ValueError as exc:
+            raise ConfigError(f"--system: {exc}") from None
+        if recorded is not None and other.name != recorded:
+            raise ConfigError(f"--system {system} builds system {other.name!r}; {what} is "
+                              f"for {recorded!r}")
+        config = config.model_copy(update={
+            "system": config.system.model_copy(update={"name": system})})
+    name = config.system.name
+    if ":" not in name and name not in list_systems():
+        raise ConfigError(
+            f"{what} is for system {name!r}, which is not registered in this process (a name "
+            "given to `register` lasts only for the Python session that registered it): "
+            "register it before loading, or on the command line give --system "
+            "module:attribute naming the function that builds it")
+    return config, system_from_config(config)
 
 
 def load_model(run_dir: str | Path, *, model_info: tuple[dict, Config, System] | None = None
@@ -478,64 +521,10 @@ def load_model(run_dir: str | Path, *, model_info: tuple[dict, Config, System] |
     run_dir = Path(run_dir)
     info, config, system = model_info if model_info is not None else read_model_info(run_dir)
     functions, meta = LearnedFunctions.load(run_dir / FUNCTIONS_FILE)
-    load_kernels(system)
     if meta.get("sha256") != info.get("functions_sha256"):
         raise ArtefactError(f"{run_dir / FUNCTIONS_FILE} is not the file the model was "
                             f"fitted with (checksum differs); rerun `rrtcolearn fit`")
-    return FittedModel(system, config, functions, functions.max_duration_,
-                       config.generate.max_state_distance)
-
-
-def load_kernels(system: System) -> None:
-    """Load the system's compiled kernels that a plan calls (numba's on-disk cache; compiled
-    and cached when absent), so that the first plan of a process costs what later ones do.
-
-    The first compiled function a process calls also initialises numba's compiler (about
-    0.2 s); this moves that cost, and the cache loads, from the first plan to the model's
-    load. Each kernel runs once, on a state and parameters in the middle of their boxes and
-    for zero or one step, through the function the planner calls it by (`integrate.rollout`,
-    `integrate.propagate`, `integrate.rollout_batch`, or directly with C-contiguous float64
-    arrays), so the very signatures a plan uses are loaded. The compiled random-control
-    iterations (`integrate.explore_jit`, about 9 s to compile once per system and machine)
-    load here for a system with finite input limits; an unbounded system explores only
-    under a plan's ``u_max``, and its first such plan compiles them. The LQR goal
-    connection's loop and the node index's scan, which a plan may need later, load on first
-    use (milliseconds once numba is initialised).
-    """
-    from rrtcolearn.integrate import propagate, rollout, rollout_batch, rollout_draws
-
-    n = system.n_states
-    x = np.ascontiguousarray((system.state_low + system.state_high) / 2, dtype=np.float64)
-    p = np.ascontiguousarray((system.param_low + system.param_high) / 2, dtype=np.float64)
-    z = np.concatenate([x, np.zeros(n + 1)])
-    inf = np.full(n, np.inf)
-    calls = (
-        lambda: system.costate_from_params_jit(x, p, 1.0, np.empty(n)),
-        lambda: rollout(system, z, 1.0, 0.01, 0),
-        lambda: system.input_max_abs_jit(z),
-        lambda: propagate(system, x, np.zeros(system.n_inputs), 0.01, 0, -inf, inf),
-        lambda: rollout_batch(system, z[None], 1.0, 0.01, 1, 1.0, 1.0, n),
-        lambda: rollout_draws(system, x, np.zeros((1, n)), np.zeros(1, np.int64), 1.0, 0.01,
-                              -inf, inf, None),
-    )
-    if system.explore_jit is not None and system.input_limited and \
-            np.isfinite(system.input_limits()).all():
-        calls += (lambda: _load_explore(system),)
-    for call in calls:
-        try:
-            call()
-        except Exception:  # loading is what counts, not the outcome of the call
-            pass
-
-
-def _load_explore(system: System) -> None:
-    """`integrate.explore_jit` called for no iteration, through `RRTCoLearn._explore` (so
-    with the argument types a plan passes: one signature)."""
-    x = (system.state_low + system.state_high) / 2
-    planner = RRTCoLearn(PlanningProblem.create(system, x, x, 1.0), None,
-                         PlannerSettings(control_edges=True))
-    rng = np.random.default_rng(0)
-    planner._explore(rng, planner._start(rng), 0)
+    return _fitted_model(system, config, functions)
 
 
 _FROM_CONFIG = object()
@@ -574,10 +563,12 @@ def make_problem(system: System, config: Config, start, goal, goal_tolerance: fl
         if u_max is not None:
             wanted = np.broadcast_to(np.asarray(u_max, dtype=float), low.shape)
             if not (np.array_equal(-low, high) and np.array_equal(high, wanted)):
+                box = ", ".join(f"{lo:g} <= u{i + 1} <= {hi:g}" for i, (lo, hi) in
+                                enumerate(zip(low.tolist(), high.tolist(), strict=True)))
                 raise ConfigError(
-                    f"u_max {u_max}: the model saturates its inputs in [{low.tolist()}, "
-                    f"{high.tolist()}] (learned from its data); train a model with that "
-                    "limit (system.u_max)")
+                    f"u_max {u_max}: the model's inputs saturate at its own limits ({box}), "
+                    "which its plans keep: omit u_max, or train a model with the limit you "
+                    "want (system.u_max)")
         u_max = None
     elif isinstance(u_max, list):
         raise ConfigError("a model of the unbounded system can plan under a single u_max "
@@ -637,13 +628,14 @@ def write_plan(p: Plan, path: str | Path) -> None:
                               "package_version": __version__, **p.to_dict()})
 
 
-def plan_system(d: dict) -> System:
+def plan_system(d: dict, system: str | None = None) -> System:
     """The system a plan file's content (`read_plan`) was planned on, rebuilt from the
-    configuration the plan records (a registered name or module:attribute, its limits)."""
+    configuration the plan records (a registered name or module:attribute, its limits), or
+    by ``system`` (`recorded_system`)."""
     if not isinstance(d.get("config"), dict):
         raise ConfigError("the plan file records no configuration: it cannot say which system "
                           "to re-simulate it on")
-    system = system_from_config(validate(d["config"]))
+    _, system = recorded_system(validate(d["config"]), d.get("system"), system, "the plan")
     if system.name != d.get("system"):
         raise ConfigError(f"the plan is for system {d.get('system')!r}, its configuration "
                           f"builds {system.name!r}")

@@ -38,9 +38,14 @@ def check_state(system: System, value, what: str, low: np.ndarray | None = None,
     outside = (x < low) | (x > high)
     if outside.any():
         j = int(np.flatnonzero(outside)[0])
+        hint = ""
+        if j in system.angle_dims:  # the same angle inside the box, where there is one
+            same = low[j] + np.mod(x[j] - low[j], 2.0 * np.pi)
+            if same <= high[j]:
+                hint = f" (an angle: give it within the box, e.g. {same:.6g})"
         raise ProblemError(
             f"{what} {system.state_names[j]}={x[j]:g} is outside the state box "
-            f"[{low[j]:g}, {high[j]:g}]")
+            f"[{low[j]:g}, {high[j]:g}]{hint}")
     return x
 
 

@@ -137,20 +137,32 @@ def diagnose(outcomes: dict, stalled: bool, nodes: int, truncating: bool,
     the tree got toward the goal."""
     failed = {k: v for k, v in outcomes.items() if k != "added" and v}
     total = sum(outcomes.values())
-    if not failed:
+    if not total:
         return "no iteration ran: raise the time or iteration limit"
+    nodes_s = f"{nodes} node{'s' if nodes != 1 else ''}"
+    if stalled:
+        head = (f"the tree stopped growing ({nodes_s}, no new node for "
+                "plan.stall_iterations iterations)")
+    else:
+        head = f"limit reached after {total} iteration{'s' if total != 1 else ''} with {nodes_s}"
     # targets out of reach are the normal lot of a small tree: name them only when nothing
     # else failed
     named = {k: v for k, v in failed.items() if k != "out_of_reach"} or failed
-    worst = max(named, key=named.get)
-    share = failed[worst] / max(total, 1)
-    head = (f"the tree stopped growing ({nodes} node{'s' if nodes != 1 else ''}, no new "
-            "node for plan.stall_iterations iterations)" if stalled
-            else f"limit reached with {nodes} node{'s' if nodes != 1 else ''}")
-    advice = _ADVICE[worst]
-    if truncating and worst in ("invalid_query", "input_limit"):
-        advice += _TRUNCATION_ADVICE
-    line = f"{head}; {share:.0%} of {total} iterations: {worst.replace('_', ' ')} — {advice}"
+    worst = max(named, key=named.get) if named else None
+    added = outcomes.get("added", 0)
+    if worst is None or (not stalled and 2 * added >= total):
+        # the limit stopped a tree that most iterations still grew: no rejection is to blame
+        line = (f"{head}; {added / total:.0%} of the iterations added a node: the tree was "
+                "still growing — raise the time or iteration limit")
+        if worst is not None:
+            line += (f" (most common rejection: {worst.replace('_', ' ')}, in "
+                     f"{failed[worst]})")
+    else:
+        advice = _ADVICE[worst]
+        if truncating and worst in ("invalid_query", "input_limit"):
+            advice += _TRUNCATION_ADVICE
+        line = (f"{head}; {failed[worst] / total:.0%} of the iterations: "
+                f"{worst.replace('_', ' ')} — {advice}")
     if progress is not None:
         start, best = progress
         line += (f"; nearest node {best:.3g} from the goal region (the start: {start:.3g})"
@@ -976,6 +988,10 @@ class RRTCoLearn:
               ) -> Plan:
         """Grow the tree until a node reaches the goal region or ``termination`` says stop."""
         prob, sys, s = self.problem, self.problem.system, self.settings
+        # compiled code this solve may call and no earlier one loaded: before the clock
+        load_kernels(sys, explore=self._control_box is not None and
+                     s.control_edges is not False and self._explore_consts() is not None,
+                     lqr=s.goal_lqr is not False)
         rng = np.random.default_rng(seed)
         cpu0 = time.thread_time()
         termination.start()
@@ -1364,3 +1380,63 @@ class RRTCoLearn:
                    **({"edges_by": run.edges_by} if run.controls else {}),
                    **({} if diagnosis is None else {"diagnosis": diagnosis})},
         )
+
+
+def load_kernels(system: System, explore: bool = False, lqr: bool = False) -> None:
+    """Load the system's compiled kernels that a plan calls and this process has not loaded
+    yet (numba's on-disk cache; compiled and cached when absent, once per system and
+    machine), so that no plan spends its time limit, or its CPU figure, on them.
+
+    `pipeline` calls it when a model is fitted or loaded: the first compiled function a
+    process calls also initialises numba's compiler (about 0.2 s), and both that and the
+    cache loads then count as the model's load, not as the first plan's. `RRTCoLearn.solve`
+    calls it before its clock starts for what that solve may call beyond them: the compiled
+    random-control iterations (``explore``: `integrate.explore_jit`, about 9 s to compile)
+    and the LQR goal connection's loop (``lqr``: `integrate.closed_loop_jit`). Each kernel
+    runs once, on a state and parameters in the middle of their boxes and for zero or one
+    step, through the function the planner calls it by, so the very signatures a plan uses
+    are loaded; a kernel that has a signature already is skipped (microseconds).
+    """
+    from rrtcolearn.integrate import propagate, rollout, rollout_batch
+
+    n, m = system.n_states, system.n_inputs
+    x = np.ascontiguousarray((system.state_low + system.state_high) / 2, dtype=np.float64)
+    p = np.ascontiguousarray((system.param_low + system.param_high) / 2, dtype=np.float64)
+    z = np.concatenate([x, np.zeros(n + 1)])
+    inf = np.full(n, np.inf)
+    calls = [
+        (system.costate_from_params_jit,
+         lambda: system.costate_from_params_jit(x, p, 1.0, np.empty(n))),
+        (system.rollout_jit, lambda: rollout(system, z, 1.0, 0.01, 0)),
+        (system.input_max_abs_jit, lambda: system.input_max_abs_jit(z)),
+        (system.propagate_jit,
+         lambda: propagate(system, x, np.zeros(m), 0.01, 0, -inf, inf)),
+        (system.rollout_batch_jit,
+         lambda: rollout_batch(system, z[None], 1.0, 0.01, 1, 1.0, 1.0, n)),
+        (system.rollout_draws_jit,
+         lambda: rollout_draws(system, x, np.zeros((1, n)), np.zeros(1, np.int64), 1.0, 0.01,
+                               -inf, inf, None)),
+    ]
+    if explore:
+        calls.append((system.explore_jit, lambda: _load_explore(system)))
+    if lqr:  # the argument types `lqr.GoalLQR.run` passes
+        calls.append((system.closed_loop_jit, lambda: system.closed_loop_jit(
+            x, x.copy(), np.zeros(m), np.zeros((m, n)), np.zeros((n, n)), -np.ones(m),
+            np.ones(m), np.zeros(n, bool), 0.01, 0, -inf, inf)))
+    for kernel, call in calls:
+        if kernel is None or getattr(kernel, "signatures", None):
+            continue  # no compiled kernel (a system built by hand), or loaded already
+        try:
+            call()
+        except Exception:  # loading is what counts, not the outcome of the call
+            pass
+
+
+def _load_explore(system: System) -> None:
+    """`integrate.explore_jit` called for no iteration, through `RRTCoLearn._explore` (so
+    with the argument types a plan passes: one signature)."""
+    x = (system.state_low + system.state_high) / 2
+    planner = RRTCoLearn(PlanningProblem.create(system, x, x, 1.0), None,
+                         PlannerSettings(control_edges=True))
+    rng = np.random.default_rng(0)
+    planner._explore(rng, planner._start(rng), 0)
