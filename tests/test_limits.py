@@ -297,3 +297,19 @@ def test_state_constraints_are_separate_from_the_sampling_box(saturated_pendulum
     with pytest.raises(ProblemError, match="outside the state box"):
         pipeline.plan(saturated_pendulum, [-np.pi, 1.5], [0.0, 0.0], 0.1, config=cfg,
                       max_iterations=10)
+
+
+def test_a_bound_that_narrows_an_angle_is_refused_not_ignored():
+    """The planner wraps angles and bounds them by nothing: a plan.state_low/high entry that
+    would narrow an angle's box (a joint limit) is an error; one at or beyond the box (no
+    constraint meant) is the box."""
+    from rrtcolearn.planning.problem import ProblemError, state_bounds
+    from rrtcolearn.systems import make
+
+    pendulum = make("pendulum")
+    low, high = state_bounds(pendulum, [-10.0, -1.2], [10.0, 1.2])
+    assert low.tolist() == [pendulum.state_low[0], -1.2]
+    assert high.tolist() == [pendulum.state_high[0], 1.2]
+    for lo, hi in (([-1.0, -7.0], [1.0, 7.0]), ([None, -7.0], [0.0, 7.0])):
+        with pytest.raises(ProblemError, match="narrows the box .* of an angle"):
+            state_bounds(pendulum, lo, hi)

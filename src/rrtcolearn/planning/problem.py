@@ -52,16 +52,24 @@ def check_state(system: System, value, what: str, low: np.ndarray | None = None,
 def state_bounds(system: System, low=None, high=None) -> tuple[np.ndarray, np.ndarray]:
     """The planner's state constraints: ``low``/``high`` (n values, None entries or None for
     the system's sampling box) over the box; ProblemError if malformed. Angle coordinates keep
-    the box (the dynamics are periodic in them)."""
+    the box (the dynamics are periodic in them): a value there that would narrow it (a joint
+    limit, which the planner does not enforce on an angle) is a ProblemError, not ignored."""
     out = []
-    for value, box, what in ((low, system.state_low, "state_low"),
-                             (high, system.state_high, "state_high")):
+    for value, box, what, sign in ((low, system.state_low, "state_low", 1.0),
+                                   (high, system.state_high, "state_high", -1.0)):
         b = np.array(box, dtype=np.float64)
         if value is not None:
             if len(value) != system.n_states:
                 raise ProblemError(f"{what} needs {system.n_states} values (None keeps the "
                                    f"sampling box), got {len(value)}")
             for j, v in enumerate(value):
+                if v is not None and j in system.angle_dims and sign * (float(v) - b[j]) > 0:
+                    name = system.state_names[j]
+                    raise ProblemError(
+                        f"{what}: {name}={float(v):g} narrows the box [{system.state_low[j]:g}"
+                        f", {system.state_high[j]:g}] of an angle, which the planner wraps and "
+                        f"does not bound: give None there (a joint limit needs {name} declared "
+                        "without angle_dims)")
                 if v is not None and j not in system.angle_dims:
                     if not np.isfinite(v):
                         raise ProblemError(f"{what} must be finite numbers or None")
