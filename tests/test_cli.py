@@ -425,3 +425,20 @@ def test_true_and_false_are_no_numbers(setting, tmp_path):
     assert_one_line_error(result, contains="section" if setting == "plan=3"
                           else "not true/false")
     assert not (tmp_path / "x").exists()
+
+
+def test_a_registered_systems_own_defaults_config_applies(monkeypatch):
+    """register(name, factory) without a config takes the system's defaults["config"], as
+    naming it module:attribute does (the README's pattern)."""
+    from examples.sparse_rrt_acrobot import TASK_GOAL_RADIUS, make_acrobot
+
+    from rrtcolearn import systems
+    from rrtcolearn.config import load_config
+
+    monkeypatch.setattr(systems, "_REGISTRY", dict(systems._REGISTRY))
+    monkeypatch.setattr(systems, "_CONFIGS", dict(systems._CONFIGS))
+    systems.register("my_acrobot", make_acrobot)
+    by_name = load_config(overrides=['system.name="my_acrobot"'])
+    by_module = load_config(overrides=['system.name="examples.sparse_rrt_acrobot:make_acrobot"'])
+    assert by_name.plan.goal_tolerance == by_module.plan.goal_tolerance == TASK_GOAL_RADIUS
+    assert by_name.plan == by_module.plan

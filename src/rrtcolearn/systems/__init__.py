@@ -8,26 +8,31 @@ from rrtcolearn.systems.base import System
 from rrtcolearn.systems.pendulum import make_pendulum
 
 _REGISTRY: dict[str, Callable[[], System]] = {}
-_CONFIGS: dict[str, dict] = {}
+_CONFIGS: dict[str, dict | None] = {}
 
 
 def register(name: str, factory: Callable[[], System], config: dict | None = None) -> None:
     """Make ``factory`` available as ``make(name)``; ``config`` is the system's recommended
-    configuration (nested dict), applied under the user's (see `recommended_config`)."""
+    configuration (nested dict), applied under the user's (see `recommended_config`); without
+    it, the system's own ``defaults["config"]``, as for a ``module:attribute`` name."""
     _REGISTRY[name] = factory
-    _CONFIGS[name] = dict(config or {})
+    _CONFIGS[name] = None if config is None else dict(config)
 
 
 def recommended_config(name: str) -> dict:
-    """The recommended configuration of system ``name``: the registry's, or for a
-    ``module:attribute`` system its ``defaults["config"]``; {} when there is none (or the
-    system cannot be built: the error is reported where it is built)."""
-    if name in _REGISTRY:
+    """The recommended configuration of system ``name``: the one it was registered with,
+    else (a registered name without one, read once, or a ``module:attribute`` system) its
+    ``defaults["config"]``; {} when there is none (or the system cannot be built: the error
+    is reported where it is built)."""
+    if name in _REGISTRY and _CONFIGS[name] is not None:
         return _CONFIGS[name]
     try:
-        return dict(make(name).defaults.get("config", {}))
+        config = dict(make(name).defaults.get("config", {}))
     except Exception:  # reported with its reason by the step that builds the system
         return {}
+    if name in _REGISTRY:
+        _CONFIGS[name] = config
+    return config
 
 
 def list_systems() -> list[str]:
@@ -107,7 +112,7 @@ def _quadrotor() -> System:
 # What a user would state about these systems' standard queries (their goal regions and
 # time limits); every learner and planner setting is derived (rrtcolearn.derive).
 _SWING_UP = {"goal_tolerance": 0.3, "wrap_goal": True, "time_limit": 60.0}
-register("pendulum", make_pendulum)
+register("pendulum", make_pendulum, {})
 register("double_integrator", _double_integrator, {"name": "double-integrator"})
 register("cartpole", _cartpole, {"name": "cartpole-swingup", "plan": _SWING_UP})
 register("acrobot", _acrobot, {"name": "acrobot-swingup", "plan": _SWING_UP})
