@@ -75,3 +75,18 @@ def test_export_bad_input_is_one_line(tiny_run, tmp_path):  # noqa: F811
     assert_one_line_error(invoke("export", str(plan_file), "--format", "xml"), 2, "csv or npz")
     assert_one_line_error(invoke("export", str(plan_file), "--dt", "-1"), 2, "positive")
     assert_one_line_error(invoke("export", str(tmp_path / "none.json")), contains="")
+
+
+def test_export_refuses_a_plan_that_is_not_what_it_claims(tiny_run, tmp_path):  # noqa: F811
+    """A file whose checksum was recomputed after an edit passes the checksum, not the
+    check: an edge's end moved is a one-line error naming the edge, and nothing is written."""
+    from rrtcolearn.data.store import write_checked_json
+
+    d = json.loads((tiny_run / "plan.json").read_text())
+    assert d["path"], "the tiny run's plan has a path"
+    d.pop("sha256", None)
+    d["path"][0]["to"][0] += 0.5
+    edited = tmp_path / "edited.json"
+    write_checked_json(edited, d)
+    assert_one_line_error(invoke("export", str(edited)), 2, "path[0]")
+    assert not edited.with_suffix(".csv").exists()

@@ -311,5 +311,5 @@ def test_a_bound_that_narrows_an_angle_is_refused_not_ignored():
     assert low.tolist() == [pendulum.state_low[0], -1.2]
     assert high.tolist() == [pendulum.state_high[0], 1.2]
     for lo, hi in (([-1.0, -7.0], [1.0, 7.0]), ([None, -7.0], [0.0, 7.0])):
-        with pytest.raises(ProblemError, match="narrows the box .* of an angle"):
+        with pytest.raises(ProblemError, match=r"narrows the box .* of an angle"):
             state_bounds(pendulum, lo, hi)

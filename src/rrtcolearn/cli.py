@@ -26,7 +26,7 @@ try:  # recent typer versions vendor click; older ones use it directly
 except ImportError:  # pragma: no cover
     from click import exceptions as _click_errors
 
-from rrtcolearn.errors import ConfigError, RRTCoLearnError
+from rrtcolearn.errors import ArtefactError, ConfigError, RRTCoLearnError
 
 if TYPE_CHECKING:
     from rich.progress import Progress
@@ -705,7 +705,7 @@ def export(
 
         from rrtcolearn import pipeline
         from rrtcolearn.data.store import atomic_write_bytes, atomic_write_text
-        from rrtcolearn.evaluate import sample_path
+        from rrtcolearn.evaluate import PlanCheckError, check_plan, sample_path
 
         if fmt not in ("csv", "npz"):
             raise ConfigError(f"--format {fmt!r}: give csv or npz")
@@ -713,6 +713,10 @@ def export(
             raise ConfigError(f"--dt {dt}: give a positive step")
         d = pipeline.read_plan(plan_file)
         system = pipeline.plan_system(d, system_name)
+        try:  # the file is what it claims before anything is exported from it
+            check_plan(system, d)
+        except PlanCheckError as exc:
+            raise ArtefactError(f"{plan_file}: {exc}") from None
         try:
             samples = sample_path(system, d, dt)
         except ValueError as exc:

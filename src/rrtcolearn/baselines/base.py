@@ -113,6 +113,6 @@ def peer_plan(problem: PlanningProblem, tree: PlannerData, path_nodes: list[int]
         iterations=int(iterations), tree=tree, path_nodes=path_nodes, u_max=problem.u_max,
         input_low=input_low, input_high=input_high,
         obstacles=[o.to_dict() for o in problem.validity.obstacles],
-        goal_angles=problem.goal_angles,
+        goal_angles=problem.goal_angles, goal_test=problem.goal_test,
         end_goal_distance=float(problem.goal_distance(end[None])[0]) if region else None,
         graph_states=graph_states, extra=extra)

@@ -249,6 +249,15 @@ class PlanningProblem:
         diff = self.goal_offset(x)
         return diff if self.goal_weights is None else diff * self.goal_weights
 
+    @property
+    def goal_test(self) -> str:
+        """How the goal is tested, as a plan file records it (`evaluate.check_plan`): "ball"
+        (the weighted, wrapped ball around ``goal``), "system" (the system's own goal region
+        from its ``defaults``) or "function" (a user's, which the file cannot hold)."""
+        if self.goal_fn is None:
+            return "ball"
+        return "system" if self.goal_fn is self.system.defaults.get("goal_fn") else "function"
+
     def goal_distance(self, x: np.ndarray) -> np.ndarray:
         """Distance of states (N, n) to the goal region: the user's ``goal_fn``, else the
         weighted Euclidean distance to ``goal`` (see ``wrap_goal``, ``goal_weights``)."""

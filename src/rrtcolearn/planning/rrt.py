@@ -1367,7 +1367,7 @@ class RRTCoLearn:
             iterations=run.iterations, tree=tree, path_nodes=tree.path_to(end),
             u_max=prob.u_max, input_low=input_low, input_high=input_high,
             obstacles=[o.to_dict() for o in prob.validity.obstacles],
-            goal_angles=prob.goal_angles,
+            goal_angles=prob.goal_angles, goal_test=prob.goal_test,
             end_goal_distance=self._end_goal_distance(tree.states[end]),
             # which edge reached the goal: the learned steering's, or a connection's
             extra={**({"goal_connected": run.connection is not None,

@@ -106,6 +106,8 @@ class Plan:
     # the path end's distance to the goal region as the planner's goal test measured it
     # (weighted or a user goal function); None: the plain distance to ``goal``
     end_goal_distance: float | None = None
+    # how the goal was tested (`PlanningProblem.goal_test`); None: not recorded
+    goal_test: str | None = None
     # states in the planner's own graph when ``tree`` holds the path only (a peer whose graph
     # is not ours, e.g. OMPL's PlannerData); None: the tree's nodes
     graph_states: int | None = None
@@ -209,6 +211,7 @@ class Plan:
             "max_abs_u": self.max_abs_u,
             "obstacles": self.obstacles,
             "goal_angles": list(self.goal_angles),
+            "goal_test": self.goal_test,
             "final_goal_distance": self.final_goal_distance,
             **self.extra,
             "path": self.edges(),
