@@ -329,3 +329,30 @@ def test_a_limit_that_stops_a_growing_tree_is_named_as_the_cause():
     line = diagnose({"invalid_query": 2000}, True, 1, False)
     assert line.startswith("the tree stopped growing (1 node")
     assert diagnose({}, False, 1, False).startswith("no iteration ran")
+
+
+def test_a_planner_api_plan_at_the_models_own_limit_exports(limited, tmp_path):
+    """The Planner API takes the problem every peer takes, u_max at the model's own limit
+    included; its plan file (no configuration recorded) exports with --system, the limits
+    taken from the box the file records."""
+    from typer.testing import CliRunner
+
+    from rrtcolearn import planners
+    from rrtcolearn.cli import app
+    from rrtcolearn.planning.problem import PlanningProblem
+    from rrtcolearn.planning.termination import TerminationCondition
+
+    planner = planners.make("rrtcolearn", model=limited)
+    problem = PlanningProblem.create(limited.system, [-np.pi, 0.0], [0.0, 0.0], 0.1,
+                                     u_max=U_MAX)
+    assert planner.supports(problem) is None
+    other = PlanningProblem.create(limited.system, [-np.pi, 0.0], [0.0, 0.0], 0.1, u_max=0.5)
+    assert "not 0.5" in planner.supports(other)
+    p = planner.solve(problem, TerminationCondition(None, 20_000), seed=0)
+    assert p.solved and "config" not in p.extra
+    path = tmp_path / "api.json"
+    pipeline.write_plan(p, path)
+    result = CliRunner().invoke(app, ["export", str(path)])
+    assert result.exit_code == 2 and "--system" in result.output
+    result = CliRunner().invoke(app, ["export", str(path), "--system", "pendulum"])
+    assert result.exit_code == 0, result.output

@@ -61,6 +61,22 @@ def test_result_files_and_schema(serial_dir):
                 assert float(r["max_abs_u"]) <= float(r["u_max"]) + 1e-9
     report = (serial_dir / "report.md").read_text()
     assert "2.36 s" in report and "random-rrt" in report and "(chosen)" in report
+    assert "## unbounded: unbounded inputs, w = 1" in report and "## u2: u_max = 2, w = 1" in report
+    assert "path cost, duration and max abs u over the solved runs" in report
+
+
+def test_the_report_labels_limits_and_the_paper_comparison():
+    """The paper's figures sit beside an unbounded pendulum problem only; a problem without
+    u_max is labelled by the system's own box where it has one."""
+    from rrtcolearn.config import ProblemSpec
+    from rrtcolearn.experiment.report import _limit_label
+
+    cfg = load_config()
+    assert _limit_label(cfg, ProblemSpec(name="a", u_max=None)) == "unbounded inputs"
+    assert _limit_label(cfg, ProblemSpec(name="b", u_max=1.5)) == "u_max = 1.5"
+    boxed = load_config(overrides=['system.name="examples.sparse_rrt_cartpole:make_cartpole"'])
+    assert _limit_label(boxed, ProblemSpec(name="c", u_max=None)) == \
+        "inputs in the system's box [-300, 300]"
 
 
 def test_sqlite_follows_ompls_documented_schema(serial_dir):

@@ -40,7 +40,7 @@ from rrtcolearn.data.store import (
 )
 from rrtcolearn.errors import ArtefactError, ConfigError, EnvironmentProblem
 from rrtcolearn.learn.models import FUNCTIONS_FORMAT, LearnedFunctions
-from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.problem import PlanningProblem, is_own_limit
 from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn, load_kernels
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan
@@ -561,8 +561,7 @@ def make_problem(system: System, config: Config, start, goal, goal_tolerance: fl
     if system.input_limited:
         low, high = system.input_limits()
         if u_max is not None:
-            wanted = np.broadcast_to(np.asarray(u_max, dtype=float), low.shape)
-            if not (np.array_equal(-low, high) and np.array_equal(high, wanted)):
+            if not is_own_limit(system, u_max):
                 box = ", ".join(f"{lo:g} <= u{i + 1} <= {hi:g}" for i, (lo, hi) in
                                 enumerate(zip(low.tolist(), high.tolist(), strict=True)))
                 raise ConfigError(
@@ -628,13 +627,29 @@ def write_plan(p: Plan, path: str | Path) -> None:
                               "package_version": __version__, **p.to_dict()})
 
 
+def _recorded_limits(d: dict) -> dict:
+    """The system section's input limits of a plan that saturated its inputs, from the box
+    the plan file records (a plan without its configuration)."""
+    low, high = d.get("input_low"), d.get("input_high")
+    if d.get("limit_mode") != "saturate" or not isinstance(low, list) or \
+            not isinstance(high, list) or None in low or None in high:
+        return {}
+    if all(lo == -hi for lo, hi in zip(low, high, strict=False)):
+        return {"u_max": high[0] if len(high) == 1 else high}
+    return {"u_low": low, "u_high": high}
+
+
 def plan_system(d: dict, system: str | None = None) -> System:
     """The system a plan file's content (`read_plan`) was planned on, rebuilt from the
     configuration the plan records (a registered name or module:attribute, its limits), or
     by ``system`` (`recorded_system`)."""
     if not isinstance(d.get("config"), dict):
-        raise ConfigError("the plan file records no configuration: it cannot say which system "
-                          "to re-simulate it on")
+        # a plan of the Planner API written as it is: only its system's name is recorded
+        if system is None:
+            raise ConfigError("the plan file records no configuration: it cannot say which "
+                              "system to re-simulate it on (give it: --system NAME or "
+                              "module:attribute)")
+        d = {**d, "config": {"system": {"name": system, **_recorded_limits(d)}}}
     _, system = recorded_system(validate(d["config"]), d.get("system"), system, "the plan")
     if system.name != d.get("system"):
         raise ConfigError(f"the plan is for system {d.get('system')!r}, its configuration "

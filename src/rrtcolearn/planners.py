@@ -21,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
-from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.problem import PlanningProblem, is_own_limit
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan
 
@@ -89,9 +89,10 @@ class RRTCoLearnPlanner:
         system = self.model.system
         if problem.system.name != system.name or problem.system.n_states != system.n_states:
             return f"the model is for system {system.name!r}, not {problem.system.name!r}"
-        if system.input_limited and problem.u_max is not None:
-            return ("the model saturates its inputs at the limits it learned with; plan with "
-                    "u_max None")
+        if system.input_limited and problem.u_max is not None and \
+                not is_own_limit(system, problem.u_max):
+            return (f"the model saturates its inputs at the limits it learned with; plan with "
+                    f"u_max None (or those limits), not {problem.u_max}")
         return None
 
     def solve(self, problem: PlanningProblem, termination: TerminationCondition,

@@ -246,14 +246,19 @@ def _report(config: Config, summary: dict, figures: dict) -> str:
              "solved.", ""]
     grid = summary["d_grid"]
     chosen = next((g for g in grid if g["chosen"]), None)
-    if summary["system"] == "pendulum":
+    first = experiment_problems(config)[0]
+    if summary["system"] == "pendulum" and first.u_max is None:
         lines += _against_paper(config, summary, ours, grid)
+    elif summary["system"] == "pendulum":
+        lines += [f"(The paper's figures are for the unbounded pendulum; the first problem, "
+                  f"{first.name}, sets u_max = {first.u_max:g}: put an unbounded problem "
+                  "first to see them beside it.)", ""]
     for pr in experiment_problems(config):
         planners = summary["planners"].get(pr.name, {})
         if not planners:
             continue
-        lines += [f"## {pr.name}: u_max = {pr.u_max}, w = {pr.time_weight:g}, tolerance "
-                  f"{pr.goal_tolerance:g}", "",
+        lines += [f"## {pr.name}: {_limit_label(config, pr)}, w = {pr.time_weight:g}, "
+                  f"tolerance {pr.goal_tolerance:g}", "",
                   "| planner | runs | success | CPU median | CPU p90 | nodes | path cost | "
                   "duration | max abs u | time vs RRT-CoLearn | RRT-CoLearn's CPU / this | "
                   "cost vs RRT-CoLearn | nodes vs RRT-CoLearn |",
@@ -273,7 +278,8 @@ def _report(config: Config, summary: dict, figures: dict) -> str:
                 f"{_fmt(st['path_duration_median'])} s | {_fmt(st['max_abs_u'])} | "
                 f"{rel('time_median')} | {rel('time_median', inverse=True)} | "
                 f"{rel('path_cost_median')} | {rel('nodes_median')} |")
-        lines.append("")
+        lines += ["", "CPU and nodes over all runs (an unsolved run at its full time); path "
+                  "cost, duration and max abs u over the solved runs.", ""]
     if summary["skipped_planners"]:
         lines += ["Planners not run here: " + "; ".join(
             f"{k} ({v})" for k, v in summary["skipped_planners"].items()), ""]
@@ -319,6 +325,18 @@ def _report(config: Config, summary: dict, figures: dict) -> str:
               "benchmark logs), benchmark.db (OMPL's SQLite schema; Planner Arena opens it), "
               "summary.json.", ""]
     return "\n".join(lines)
+
+
+def _limit_label(config: Config, pr) -> str:
+    """A problem's input limit as its plans have it: its u_max, else the system's own box."""
+    if pr.u_max is not None:
+        return f"u_max = {pr.u_max:g}"
+    system = problem_system(config, pr)
+    if not system.input_limited:
+        return "unbounded inputs"
+    low, high = system.input_limits()
+    return "inputs in the system's box " + ", ".join(
+        f"[{lo:g}, {hi:g}]" for lo, hi in zip(low.tolist(), high.tolist(), strict=True))
 
 
 def _against_paper(config: Config, summary: dict, ours: dict, grid: list[dict]) -> list[str]:

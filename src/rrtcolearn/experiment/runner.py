@@ -143,6 +143,10 @@ def make_tasks(exp_dir: Path, config: Config) -> tuple[list[RunTask], dict[str, 
             probe = RunTask(str(exp_dir), config, 0, pr, planner, ())
             reason = make_planner(probe, fitted=False).supports(problem)
             if reason is not None:
+                if planner not in _FITTED and config.experiment.peer_u_max is None and \
+                        problem.u_max is None and not problem.system.input_limited:
+                    # no input bound: the setting that gives the random-control peers one
+                    reason += "; in an experiment: experiment.peer_u_max"
                 skipped[f"{planner} on {pr.name}"] = reason
                 continue
             if planner == "rrtcolearn":

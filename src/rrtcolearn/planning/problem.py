@@ -49,6 +49,16 @@ def check_state(system: System, value, what: str, low: np.ndarray | None = None,
     return x
 
 
+def is_own_limit(system: System, u_max) -> bool:
+    """Whether ``u_max`` (a number or one per input) is the symmetric input box ``system``
+    saturates at: a model of it plans under that limit as it is (none other)."""
+    if not system.input_limited:
+        return False
+    low, high = system.input_limits()
+    wanted = np.broadcast_to(np.asarray(u_max, dtype=float), low.shape)
+    return bool(np.array_equal(-low, high) and np.array_equal(high, wanted))
+
+
 def state_bounds(system: System, low=None, high=None) -> tuple[np.ndarray, np.ndarray]:
     """The planner's state constraints: ``low``/``high`` (n values, None entries or None for
     the system's sampling box) over the box; ProblemError if malformed. Angle coordinates keep
