@@ -152,3 +152,19 @@ def test_unbounded_inputs_need_a_bound(pendulum):
     with pytest.raises(ValueError, match="input bound"):
         planners.make("ompl-RRT").solve(prob, TerminationCondition(1.0), 0)
     assert planners.make("ompl-RRT", u_max=3.0).supports(prob) is None
+
+
+def test_the_bindings_exit_reports_are_silenced():
+    """nanobind prints reference-leak reports for OMPL's objects while the interpreter shuts
+    down: once OMPL is imported, stderr is closed at exit (after everything else)."""
+    import subprocess
+    import sys
+
+    code = ("import atexit, os\n"
+            "atexit.register(lambda: os.write(2, b'AFTER EXIT\\n'))\n"
+            "from rrtcolearn.baselines.ompl_planners import ompl_available\n"
+            "assert ompl_available()\n"
+            "import sys; print('said', file=sys.stderr)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert "said" in out.stderr and "AFTER EXIT" not in out.stderr

@@ -18,6 +18,8 @@ so `OMPLPlanner` runs each plan in a fresh forked process (``isolated``).
 
 from __future__ import annotations
 
+import atexit
+import functools
 import math
 import multiprocessing
 import operator
@@ -47,7 +49,24 @@ def ompl_available() -> bool:
         from ompl import base, control, util  # noqa: F401
     except ImportError:
         return False
+    _silence_exit_reports()
     return True
+
+
+@functools.cache
+def _silence_exit_reports() -> None:
+    atexit.register(_quiet_exit)  # once per process
+
+
+def _quiet_exit() -> None:
+    """At interpreter exit, after everything this process had to say: stderr closed, as
+    the bindings' nanobind prints some 25 lines of reference-leak reports for OMPL's
+    objects and types while the interpreter shuts down (also in `_isolated_worker`)."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    os.close(devnull)
 
 
 def _obstacle_free(problem: PlanningProblem) -> Callable[[list], bool] | None:
