@@ -68,3 +68,12 @@ def test_any_planner_and_a_budget_is_required(pendulum):
     assert p.solved and costs and all(b < c for c, b in pairwise(costs))
     with pytest.raises(ValueError, match="budget"):
         solve_with_restarts(solve, TerminationCondition(None, None), seed=1)
+
+
+def test_the_anytime_record_counts_every_iteration(paper_model):
+    cfg = paper_model.config.model_copy(update={"plan": paper_model.config.plan.model_copy(
+        update={"anytime": True})})
+    p = pipeline.plan(paper_model, [-np.pi, 0.0], [0.0, 0.0], 0.1, 0, config=cfg,
+                      time_limit=None, max_iterations=1500)
+    record = p.extra["anytime"]
+    assert record["solves"] > 1 and p.iterations < record["iterations"] <= 1500

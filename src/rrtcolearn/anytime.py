@@ -116,7 +116,7 @@ def solve_with_restarts(solve: Callable[[TerminationCondition, int], Plan],
                                                          "__name__", "improve")
     scheme = "restarts" if improve is None else f"restarts+{name}"
     best.extra["anytime"] = {"scheme": scheme, "solves": runs, "progress": progress,
-                             "planning_cpu_s": round(cpu, 6),
+                             "iterations": iterations, "planning_cpu_s": round(cpu, 6),
                              "first_solution_cpu_s": progress[0][0] if progress else None,
                              "first_solution_cost": progress[0][1] if progress else None}
     best.planning_cpu_s, best.planning_time_s = cpu, wall
