@@ -306,14 +306,24 @@ def test_a_solve_compiles_nothing_while_its_clock_runs(limited):
     load_kernels(sys, explore=True, lqr=True)
     kernels = ("costate_from_params_jit", "rollout_jit", "input_max_abs_jit", "propagate_jit",
                "rollout_batch_jit", "rollout_draws_jit", "explore_jit", "closed_loop_jit")
-    before = {k: len(getattr(sys, k).signatures) for k in kernels}
+    from rrtcolearn.planning import nearest, rrt
+
+    # the planner's own compiled functions, loaded by the model's throwaway solve
+    own = {"_summarise_draws": rrt._summarise_draws, "_sqdists": nearest._sqdists,
+           "_least": nearest._least}
+
+    def signatures():
+        return {**{k: len(getattr(sys, k).signatures) for k in kernels},
+                **{k: len(f.signatures) for k, f in own.items()}}
+
+    before = signatures()
     assert all(before.values()), before
     cfg = _with(limited, control_edges=True, goal_lqr=True)
     for seed in range(3):
         p = pipeline.plan(limited, [-np.pi, 0.0], [0.0, 0.0], 0.1, seed, config=cfg,
                           max_iterations=3000, time_limit=None)
         assert p.extra["goal_lqr"]["tries"] > 0
-    assert {k: len(getattr(sys, k).signatures) for k in kernels} == before
+    assert signatures() == before
 
 
 def test_a_limit_that_stops_a_growing_tree_is_named_as_the_cause():
@@ -323,9 +333,13 @@ def test_a_limit_that_stops_a_growing_tree_is_named_as_the_cause():
     assert line.startswith("limit reached after 2 iterations with 2 nodes")
     assert "the tree was still growing — raise the time or iteration limit" in line
     assert "most common rejection: out of reach, in 1" in line
+    # no rejection held most iterations back: still the limit
+    line = diagnose({"added": 8, "invalid_query": 5, "out_of_reach": 33}, False, 10, False)
+    assert line.endswith("17% of the iterations added a node — raise the time or iteration "
+                         "limit (most common rejection: invalid query, in 5)")
     # a rejection that stopped most iterations is named with its advice
-    line = diagnose({"added": 20, "invalid_query": 18, "out_of_reach": 29}, False, 10, False)
-    assert "27% of the iterations: invalid query — the validity model V" in line
+    line = diagnose({"added": 20, "invalid_query": 38, "out_of_reach": 9}, False, 10, False)
+    assert "57% of the iterations: invalid query — the validity model V" in line
     line = diagnose({"invalid_query": 2000}, True, 1, False)
     assert line.startswith("the tree stopped growing (1 node")
     assert diagnose({}, False, 1, False).startswith("no iteration ran")

@@ -32,3 +32,17 @@ def test_readme_external_problem_block_defines_the_examples_dynamics():
                                atol=1e-12)
     np.testing.assert_array_equal(mine.input_limits(), theirs.input_limits())
     assert mine.defaults["config"] == theirs.defaults["config"]
+
+
+def test_readme_library_blocks_run_as_written(tmp_path, monkeypatch, capsys):
+    """"Using the library": both blocks, verbatim, in a fresh directory (each plans the
+    swing-up; about 10 s each, most of it the 40 000 simulations)."""
+    text = (Path(__file__).parents[1] / "README.md").read_text()
+    section = re.search(r"## Using the library\n(.*?)\n### ", text, re.S).group(1)
+    blocks = re.findall(r"```python\n(.*?)```", section, re.S)
+    assert len(blocks) == 2
+    monkeypatch.chdir(tmp_path)
+    for block in blocks:
+        exec(compile(block, "README.md", "exec"), {})
+        status = capsys.readouterr().out.split()[0]
+        assert status == "exact"

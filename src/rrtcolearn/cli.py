@@ -727,8 +727,9 @@ def export(
         table = np.column_stack([samples["t"], samples["state"], samples["input"],
                                  samples["costate"], samples["edge"]])
         if fmt == "csv":
-            lines = [",".join(columns)] + [",".join(repr(float(v)) for v in row)
-                                          for row in table]
+            # the edge index is a whole number; every other column a float
+            lines = [",".join(columns)] + [",".join([*(repr(float(v)) for v in row[:-1]),
+                                                     str(int(row[-1]))]) for row in table]
             atomic_write_text(target, "\n".join(lines) + "\n")
         else:
             import io

@@ -403,7 +403,10 @@ def _format_error(exc: ValidationError) -> str:
     key = ".".join(str(p) for p in loc)
     if err["type"] == "extra_forbidden":
         known = _known_keys(Config, loc)
-        close = difflib.get_close_matches(str(loc[-1]), known, n=1)
+        typed = str(loc[-1])
+        # a key cut short names what it starts (goal_tol: goal_tolerance), else the closest
+        close = [k for k in known if k.startswith(typed)][:1] or \
+            difflib.get_close_matches(typed, known, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else f" (known keys: {', '.join(known)})"
         return f"config: unknown key {key!r}{hint}"
     msg = err["msg"].removeprefix("Value error, ")

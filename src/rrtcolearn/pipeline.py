@@ -461,8 +461,31 @@ def _fitted_model(system: System, config: Config, functions: LearnedFunctions
     first time, once per system and machine): the first plan costs what later ones do."""
     load_kernels(system, explore=system.input_limited and
                  bool(np.isfinite(system.input_limits()).all()))
-    return FittedModel(system, config, functions, functions.max_duration_,
-                       config.generate.max_state_distance)
+    model = FittedModel(system, config, functions, functions.max_duration_,
+                        config.generate.max_state_distance)
+    _warm_planner(model)
+    return model
+
+
+# iterations of the throwaway solve that loads the planner's own compiled functions
+_WARM_ITERATIONS = 50
+
+
+def _warm_planner(model: FittedModel) -> None:
+    """A throwaway solve from the middle of the box toward a goal it cannot reach: the
+    planner's own compiled functions (the draws' summary, the node index's scan) load from
+    numba's cache with the model, or compile once per installation (about 2 s), instead of
+    inside the first plan's clock. Its outcome does not matter, nor does it touch any
+    later plan (its own planner and generator)."""
+    system = model.system
+    low, high = system.state_low, system.state_high
+    try:
+        problem = PlanningProblem.create(system, (low + high) / 2, low + 0.75 * (high - low),
+                                         1e-9)
+        RRTCoLearn(problem, model.functions, model.planner_settings()).solve(
+            TerminationCondition(None, _WARM_ITERATIONS), 0)
+    except Exception:  # loading is what counts, not the outcome
+        pass
 
 
 def read_model_info(run_dir: str | Path, system: str | None = None
@@ -562,8 +585,9 @@ def make_problem(system: System, config: Config, start, goal, goal_tolerance: fl
         low, high = system.input_limits()
         if u_max is not None:
             if not is_own_limit(system, u_max):
-                box = ", ".join(f"{lo:g} <= u{i + 1} <= {hi:g}" for i, (lo, hi) in
-                                enumerate(zip(low.tolist(), high.tolist(), strict=True)))
+                box = ", ".join(f"{lo:g} <= {name} <= {hi:g}" for name, lo, hi in
+                                zip(system.input_names, low.tolist(), high.tolist(),
+                                    strict=True))
                 raise ConfigError(
                     f"u_max {u_max}: the model's inputs saturate at its own limits ({box}), "
                     "which its plans keep: omit u_max, or train a model with the limit you "

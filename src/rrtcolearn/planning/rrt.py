@@ -150,10 +150,12 @@ def diagnose(outcomes: dict, stalled: bool, nodes: int, truncating: bool,
     named = {k: v for k, v in failed.items() if k != "out_of_reach"} or failed
     worst = max(named, key=named.get) if named else None
     added = outcomes.get("added", 0)
-    if worst is None or (not stalled and 2 * added >= total):
-        # the limit stopped a tree that most iterations still grew: no rejection is to blame
-        line = (f"{head}; {added / total:.0%} of the iterations added a node: the tree was "
-                "still growing — raise the time or iteration limit")
+    if worst is None or (not stalled and (2 * added >= total or 2 * failed[worst] < total)):
+        # the limit stopped a tree that most iterations still grew, or that no one rejection
+        # held back: the limit is to blame
+        line = (f"{head}; {added / total:.0%} of the iterations added a node"
+                + (": the tree was still growing" if 2 * added >= total else "")
+                + " — raise the time or iteration limit")
         if worst is not None:
             line += (f" (most common rejection: {worst.replace('_', ' ')}, in "
                      f"{failed[worst]})")
