@@ -159,3 +159,28 @@ def test_propagate_draws_is_propagate_draw_by_draw(pendulum):
             assert count == len(one) and stop == int(outside)
             begin += count
         assert begin == len(states) and stops.tolist() == [0, 1, 0]
+
+
+def test_a_peer_edge_that_turns_invalid_ends_at_its_last_valid_state(pendulum):
+    """A peer's path executed here: an edge that leaves the state constraints or enters an
+    obstacle is kept up to its last valid state, with the duration and cost of those steps,
+    so the plan re-simulates to what it records (`evaluate.check_plan`)."""
+    import json
+
+    from rrtcolearn.baselines.base import control_plan
+    from rrtcolearn.evaluate import check_plan
+
+    walls = [{"type": "halfplane", "normal": [0.0, 1.0], "offset": 2.0},  # |omega| >= 2
+             {"type": "halfplane", "normal": [0.0, -1.0], "offset": 2.0}]
+    for kwargs in ({"state_low": [None, -1.0], "state_high": [None, 1.0]},
+                   {"obstacles": walls}):
+        problem = PlanningProblem.create(pendulum, [-np.pi, 0.0], [0.0, 0.0], 0.1, u_max=5.0,
+                                         **kwargs)
+        p = control_plan(problem, np.array([[5.0], [-5.0]]), np.array([400, 10]), dt=0.01,
+                         time_weight=1.0, cpu_s=0.0, wall_s=0.0, iterations=1,
+                         graph_states=3, extra={})
+        assert p.status == "approximate" and p.tree.n_nodes == 2 and not p.extra["valid"]
+        edge = p.edges()[0]
+        assert 0 < edge["duration"] < 4.0
+        d = json.loads(json.dumps(p.to_dict()))
+        assert check_plan(pendulum, d)["max_gap"] == 0.0

@@ -67,7 +67,9 @@ def control_plan(problem: PlanningProblem, controls: np.ndarray, steps: np.ndarr
     ``dt`` from the start, executed here edge after edge (`propagate`). The tree holds the
     path only (``graph_states`` is the size of the peer's graph). The status is "exact" only
     when the executed path stays valid (state constraints, obstacles, finite) and ends in the
-    goal region; the peer's own claim is not taken on trust."""
+    goal region; the peer's own claim is not taken on trust. An edge that turns invalid is
+    recorded up to its last valid state, with the duration and cost of those steps, and ends
+    the path."""
     sys = problem.system
     controls = np.asarray(controls, dtype=np.float64).reshape(len(steps), sys.n_inputs)
     tree = PlannerData(problem.start, sys.n_params, capacity=max(2, len(steps) + 1),
@@ -77,15 +79,21 @@ def control_plan(problem: PlanningProblem, controls: np.ndarray, steps: np.ndarr
     for u, k in zip(controls, steps, strict=True):
         x = tree.states[tree.n_nodes - 1]
         traj = propagate(sys, x, u, dt, int(k), low, high)
-        ok = len(traj) == int(k) + 1 and bool(np.isfinite(traj[-1]).all()) and \
+        last_ok = bool(np.isfinite(traj[-1]).all()) and \
             bool(np.all((traj[-1] >= low) & (traj[-1] <= high)))
-        if ok and problem.validity:
-            ok = bool(problem.validity(traj[1:]).all())
+        keep = len(traj) if last_ok else len(traj) - 1  # (a stop's last state is outside)
+        if problem.validity and keep > 1:
+            free = problem.validity(traj[1:keep])
+            if not free.all():
+                keep = 1 + int(np.argmin(free))  # up to the state before the first obstacle
+        ok = keep == int(k) + 1
         valid &= ok
-        tree.add(traj[-1], tree.n_nodes - 1, np.full(sys.n_states, np.nan),
-                 np.full(sys.n_params, np.nan), int(k) * dt,
-                 int(k) * dt * edge_cost_rate(problem, u, time_weight), traj,
-                 float(np.abs(u).max()), control=u)
+        done = keep - 1  # the steps executed validly: the edge ends at the last valid state
+        if done:  # with the duration and cost of its own steps
+            tree.add(traj[done], tree.n_nodes - 1, np.full(sys.n_states, np.nan),
+                     np.full(sys.n_params, np.nan), done * dt,
+                     done * dt * edge_cost_rate(problem, u, time_weight), traj[:keep],
+                     float(np.abs(u).max()), control=u)
         if not ok:
             break
     end = tree.states[tree.n_nodes - 1]
