@@ -115,3 +115,26 @@ def test_start_or_goal_inside_an_obstacle_is_refused(paper_model, start, goal, w
 def test_malformed_obstacles_are_refused(paper_model, spec, message):
     with pytest.raises(ProblemError, match=message):
         plan(paper_model, [-np.pi, 0], [0, 0], 0.1, obstacles=[spec])
+
+
+def test_an_obstacle_covers_its_region_on_every_turn():
+    """A box given on any turn of an angle, or across the end of the turn the states are
+    wrapped into, forbids the same states on every turn."""
+    from rrtcolearn.planning.problem import PlanningProblem, ProblemError
+    from rrtcolearn.systems import make
+
+    pendulum = make("pendulum")  # theta wrapped into [-3 pi / 2, pi / 2)
+    two_pi = 2 * np.pi
+    across = [{"type": "box", "low": [1.2, -0.5], "high": [2.0, 0.5]}]
+    p = PlanningProblem.create(pendulum, [-3.0, 0.0], [0.0, 0.0], 0.1, obstacles=across)
+    x = np.array([[1.3, 0.0], [1.8, 0.0], [1.8 - two_pi, 0.0], [1.3 - two_pi, 0.0],
+                  [1.3 + two_pi, 0.0], [1.0, 0.0], [2.1 - two_pi, 0.0]])
+    assert p.validity(x).tolist() == [False] * 5 + [True, True]
+    elsewhere = [{"type": "box", "low": [3.0, -0.5], "high": [3.3, 0.5]}]  # (pi, 0) on it
+    with pytest.raises(ProblemError, match=r"the start .* lies inside an obstacle"):
+        PlanningProblem.create(pendulum, [-np.pi, 0.0], [0.0, 0.0], 0.1, obstacles=elsewhere)
+    ring = [{"type": "box", "low": [-10.0, 1.0], "high": [10.0, 1.5]}]  # every theta
+    p = PlanningProblem.create(pendulum, [-3.0, 0.0], [0.0, 0.0], 0.1, obstacles=ring)
+    theta = np.linspace(-20, 20, 101)
+    assert not p.validity(np.c_[theta, np.full(101, 1.2)]).any()
+    assert p.validity(np.c_[theta, np.full(101, 0.9)]).all()

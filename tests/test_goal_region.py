@@ -94,3 +94,27 @@ def test_funnel_of_a_goal_region_keeps_states_near_the_goal(paper_model):
     search = planner._build_funnel(np.random.default_rng(0), np.ones(2), 300)
     near = np.linalg.norm(search.funnel.offsets, axis=1) < 5.0
     assert near.any()
+
+
+def test_a_goal_function_or_sampler_that_goes_wrong_later_is_an_error(pendulum):
+    """Answers are checked on every call, not only the first: a NaN or a wrong shape later
+    in a plan is a ProblemError naming it, never a path ending at a NaN node."""
+    from rrtcolearn.planning.problem import PlanningProblem, ProblemError
+
+    def nan_far(x):  # fine at the goal and the start, NaN elsewhere
+        d = np.abs(np.atleast_2d(x)[:, 0])
+        return np.where((d < 1e-9) | (np.abs(d - np.pi) < 1e-9), d, np.nan)
+
+    p = PlanningProblem.create(pendulum, [-np.pi, 0.0], [0.0, 0.0], 0.1, goal_fn=nan_far)
+    with pytest.raises(ProblemError, match="not finite at"):
+        p.goal_distance(np.array([[1.0, 0.0]]))
+    short = PlanningProblem.create(pendulum, [-np.pi, 0.0], [0.0, 0.0], 0.1,
+                                   goal_fn=lambda x: np.abs(np.atleast_2d(x)[:2, 0]))
+    with pytest.raises(ProblemError, match=r"got shape \(2,\) for 3 states"):
+        short.goal_distance(np.zeros((3, 2)))
+    draws = iter([[0.0, 0.0], [np.nan, 0.0]])
+    sampled = PlanningProblem.create(pendulum, [-np.pi, 0.0], [0.0, 0.0], 0.1,
+                                     goal_fn=lambda x: np.abs(np.atleast_2d(x)[:, 0]),
+                                     goal_sampler=lambda rng: next(draws))
+    with pytest.raises(ProblemError, match="the goal sampler must return one finite state"):
+        sampled.sample_goal(np.random.default_rng(0))

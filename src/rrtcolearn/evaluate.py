@@ -452,7 +452,7 @@ def check_plan(system: System, plan, *, goal_fn=None, rtol: float = PLAN_CHECK_R
     ``state_constraints_checked`` (a plan without its configuration records none).
     """
     from rrtcolearn.planning.problem import PlanningProblem, state_bounds
-    from rrtcolearn.planning.validity import ObstacleChecker
+    from rrtcolearn.planning.validity import ObstacleChecker, in_turn
 
     f = _parse_plan(system, plan if isinstance(plan, dict) else plan.to_dict(), rtol)
     low_u, high_u = f["low"], f["high"]
@@ -462,7 +462,9 @@ def check_plan(system: System, plan, *, goal_fn=None, rtol: float = PLAN_CHECK_R
     def wrap(x: np.ndarray) -> np.ndarray:
         return x + system.wrap_shift(x)
 
-    obstacles = ObstacleChecker(f["obstacles"], None, wrap)
+    obstacles = ObstacleChecker(in_turn(f["obstacles"], {j: float(system.state_low[j])
+                                                         for j in system.angle_dims}),
+                                None, wrap)
     constraints = None
     if f["config"] is not None:
         try:

@@ -12,6 +12,7 @@ from rrtcolearn.planning.validity import (
     Obstacle,
     ObstacleChecker,
     StateValidityChecker,
+    in_turn,
     obstacle_from_dict,
 )
 from rrtcolearn.systems.base import System
@@ -178,6 +179,7 @@ class PlanningProblem:
                      for o in obstacles]
         except (KeyError, TypeError, ValueError) as exc:
             raise ProblemError(f"invalid obstacle: {exc}") from None
+        built = in_turn(built, {j: float(system.state_low[j]) for j in system.angle_dims})
 
         def wrap(x: np.ndarray) -> np.ndarray:
             return x + system.wrap_shift(x)
@@ -272,7 +274,16 @@ class PlanningProblem:
         """Distance of states (N, n) to the goal region: the user's ``goal_fn``, else the
         weighted Euclidean distance to ``goal`` (see ``wrap_goal``, ``goal_weights``)."""
         if self.goal_fn is not None:
-            return np.asarray(self.goal_fn(np.atleast_2d(x)), dtype=np.float64)
+            # checked on every call, as the validity checker's answers are: a wrong shape or
+            # a NaN later in a plan would otherwise cut edges wrongly or end the path there
+            x = np.atleast_2d(x)
+            d = np.asarray(self.goal_fn(x), dtype=np.float64)
+            if d.shape != (len(x),) or not np.all(np.isfinite(d)):
+                bad = "" if d.shape != (len(x),) else \
+                    f"; not finite at {x[int(np.flatnonzero(~np.isfinite(d))[0])].tolist()}"
+                raise ProblemError(f"the goal function must map states (N, n) to N finite "
+                                   f"distances: got shape {d.shape} for {len(x)} states{bad}")
+            return d
         return np.linalg.norm(self.goal_residual(x), axis=1)
 
     def sample_goal(self, rng: np.random.Generator) -> np.ndarray:
@@ -280,7 +291,11 @@ class PlanningProblem:
         (weight 0) the goal with those drawn uniformly from the state constraints; else the
         goal itself (drawing nothing: the paper's planner)."""
         if self.goal_sampler is not None:
-            return np.asarray(self.goal_sampler(rng), dtype=np.float64)
+            x = np.asarray(self.goal_sampler(rng), dtype=np.float64)
+            if x.shape != self.goal.shape or not np.all(np.isfinite(x)):
+                raise ProblemError(f"the goal sampler must return one finite state of "
+                                   f"{self.goal.size} values, got {x.tolist()}")
+            return x
         if self.goal_weights is None or np.all(self.goal_weights > 0):
             return self.goal
         free = self.goal_weights == 0

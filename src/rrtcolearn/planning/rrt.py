@@ -167,7 +167,8 @@ def diagnose(outcomes: dict, stalled: bool, nodes: int, truncating: bool,
                 f"{worst.replace('_', ' ')} — {advice}")
     if progress is not None:
         start, best = progress
-        line += (f"; nearest node {best:.3g} from the goal region (the start: {start:.3g})"
+        # (the goal test's distance: to the goal state for a ball, the user's to a region)
+        line += (f"; nearest node {best:.3g} from the goal (the start: {start:.3g})"
                  + (": no progress toward the goal" if best >= 0.99 * start else ""))
     return line
 

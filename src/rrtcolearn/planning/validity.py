@@ -70,11 +70,44 @@ def obstacle_from_dict(spec: dict, n_states: int) -> Obstacle:
     raise ValueError(f"unknown obstacle type {kind!r}; use 'box' or 'halfplane'")
 
 
+def in_turn(obstacles: Sequence[Obstacle], angle_low: dict[int, float]) -> list[Obstacle]:
+    """The obstacles with every box moved, on each angle coordinate ``j`` (``angle_low``: j
+    -> the state box's low there), by whole turns into the turn [low, low + 2 pi) the
+    checker wraps states into, split in two where it crosses that turn's end and the whole
+    turn where it spans one: an obstacle covers its region on every turn, wherever it was
+    given. Half-planes are tested on the wrapped states as they are."""
+    two_pi = 2.0 * np.pi
+    out: list[Obstacle] = []
+    for ob in obstacles:
+        pieces = [ob]
+        if isinstance(ob, Box):
+            for j, low in angle_low.items():
+                split = []
+                for b in pieces:
+                    lo, hi = float(b.low[j]), float(b.high[j])
+                    if hi - lo >= two_pi:  # the whole turn
+                        lo, hi = low, low + two_pi
+                    else:
+                        shift = two_pi * np.floor((lo - low) / two_pi)
+                        lo, hi = lo - shift, hi - shift
+                    parts = [(lo, min(hi, low + two_pi))]
+                    if hi > low + two_pi:  # across the turn's end: the rest at its start
+                        parts.append((low, hi - two_pi))
+                    for a, c in parts:
+                        b_low, b_high = b.low.copy(), b.high.copy()
+                        b_low[j], b_high[j] = a, c
+                        split.append(Box(b_low, b_high))
+                pieces = split
+        out.extend(pieces)
+    return out
+
+
 class ObstacleChecker:
     """Valid where no obstacle contains the state and the user's checker (if any) agrees.
 
     ``wrap`` maps states before the test; the planner passes the system's shift of angle
-    coordinates into the state box, so an obstacle covers its region on every turn.
+    coordinates into the state box, and its boxes moved into that turn (`in_turn`), so an
+    obstacle covers its region on every turn.
     """
 
     def __init__(self, obstacles: Sequence[Obstacle] = (),
