@@ -442,3 +442,18 @@ def test_a_registered_systems_own_defaults_config_applies(monkeypatch):
     by_module = load_config(overrides=['system.name="examples.sparse_rrt_acrobot:make_acrobot"'])
     assert by_name.plan.goal_tolerance == by_module.plan.goal_tolerance == TASK_GOAL_RADIUS
     assert by_name.plan == by_module.plan
+
+
+@pytest.mark.parametrize("setting, contains", [
+    ('plan.goal_tolerance="0.2"', "must be a number, not text"),
+    ('plan.obstacles=[{type="halfplane", normal=[0,1], offset="2.8"}]',
+     "must be a number, not text"),
+    ('plan.obstacles=[{type="box", lo=[0,0], high=[1,1]}]', "did you mean 'low'?"),
+    ('plan.obstacles=[{type="box", low=[0,0], high=[1,1], margin=1}]',
+     "known keys: type, low, high"),
+])
+def test_obstacle_and_number_settings_as_written(setting, contains, tmp_path):
+    """A quoted number is text, not silently a number; a misspelt obstacle key gets the
+    suggestion every other section gets."""
+    result = invoke("generate", "--out", str(tmp_path / "x"), "--set", setting)
+    assert_one_line_error(result, contains=contains)

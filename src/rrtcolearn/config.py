@@ -11,7 +11,7 @@ import difflib
 import math
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal, get_args
+from typing import Annotated, Any, Literal, get_args, get_origin
 
 import tomli_w
 from pydantic import (
@@ -26,9 +26,15 @@ from pydantic import (
 from rrtcolearn.errors import ConfigError
 
 
-def _takes_bool(annotation: Any) -> bool:
-    """Whether a field's type admits true/false (bool, or a union or list holding it)."""
-    return annotation is bool or any(_takes_bool(a) for a in get_args(annotation))
+def _takes(annotation: Any, kind: type) -> bool:
+    """Whether a field's type admits values of ``kind`` as written (bool or str): the type
+    itself, a Literal of such values, or a union or list holding one."""
+    if annotation is kind:
+        return True
+    args = get_args(annotation)
+    if get_origin(annotation) is Literal:
+        return any(isinstance(a, kind) for a in args)
+    return any(_takes(a, kind) for a in args)
 
 
 class _Section(BaseModel):
@@ -36,16 +42,19 @@ class _Section(BaseModel):
 
     @model_validator(mode="before")
     @classmethod
-    def _no_bool_numbers(cls, data: Any) -> Any:
-        # pydantic reads true/false as 1/0 where a number is expected: a mistyped setting
-        # would pass silently (plan.goal_bias=true is a goal bias of 1)
+    def _as_written(cls, data: Any) -> Any:
+        # pydantic reads true/false as 1/0 and "2.8" as 2.8 where a number is expected: a
+        # mistyped setting would pass silently (plan.goal_bias=true is a goal bias of 1)
         if isinstance(data, dict):
             for key, v in data.items():
                 field = cls.model_fields.get(key)
-                flags = isinstance(v, bool) or (isinstance(v, list) and
-                                                any(isinstance(x, bool) for x in v))
-                if field is not None and flags and not _takes_bool(field.annotation):
-                    raise ValueError(f"{key}: must be a number or text, not true/false")
+                if field is None:
+                    continue
+                values = v if isinstance(v, list) else [v]
+                for kind, what in ((bool, "true/false"), (str, "text")):
+                    if any(isinstance(x, kind) for x in values) and \
+                            not _takes(field.annotation, kind):
+                        raise ValueError(f"{key}: must be a number, not {what} ({v!r})")
         return data
 
     @field_validator("*", mode="after")
@@ -387,18 +396,36 @@ def paper_config(**sections: dict[str, Any]) -> Config:
     return validate(data)
 
 
+def _models(annotation: Any) -> list[type[BaseModel]]:
+    """The sections a field's type holds: itself, a list's items, a union's members."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    return [m for a in get_args(annotation) for m in _models(a)]
+
+
 def _known_keys(model: type[BaseModel], loc: tuple) -> list[str]:
-    for part in loc[:-1]:
-        field = model.model_fields.get(str(part))
-        ann = getattr(field, "annotation", None) if field else None
-        if not (isinstance(ann, type) and issubclass(ann, BaseModel)):
+    """The keys of the section an error's location ``loc`` ends in: through lists (an item's
+    index) and tagged unions (the obstacle's ``type``, which pydantic puts in the path)."""
+    parts = list(loc[:-1])
+    while parts:
+        field = model.model_fields.get(str(parts.pop(0)))
+        members = _models(field.annotation) if field else []
+        if parts and isinstance(parts[0], int):  # a list's item
+            parts.pop(0)
+        if len(members) > 1 and parts:  # a tagged union: the tag names its member
+            tag = parts.pop(0)
+            members = [m for m in members if "type" in m.model_fields
+                       and tag in get_args(m.model_fields["type"].annotation)]
+        if len(members) != 1:
             return []
-        model = ann
+        model = members[0]
     return list(model.model_fields)
 
 
 def _format_error(exc: ValidationError) -> str:
-    err = exc.errors()[0]
+    errors = exc.errors()
+    # a misspelt key is also a missing one: name the misspelling, with its suggestion
+    err = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
     loc = tuple(err["loc"])
     key = ".".join(str(p) for p in loc)
     if err["type"] == "extra_forbidden":
@@ -410,6 +437,9 @@ def _format_error(exc: ValidationError) -> str:
         hint = f" (did you mean {close[0]!r}?)" if close else f" (known keys: {', '.join(known)})"
         return f"config: unknown key {key!r}{hint}"
     msg = err["msg"].removeprefix("Value error, ")
+    field, _, rest = msg.partition(": ")
+    if isinstance(err.get("input"), dict) and field in err["input"]:
+        key, msg = f"{key}.{field}", rest  # a section-wide check that names its key
     # the value given, not a whole section's (a section-wide check names its key itself)
     got = f" (got {err['input']!r})" if "input" in err and err["type"] != "missing" and \
         not isinstance(err["input"], dict) else ""
