@@ -451,20 +451,13 @@ def check_plan(system: System, plan, *, goal_fn=None, rtol: float = PLAN_CHECK_R
     and ``goal_checked``; ``obstacles`` (how many were checked) and
     ``state_constraints_checked`` (a plan without its configuration records none).
     """
-    from rrtcolearn.planning.problem import PlanningProblem, state_bounds
-    from rrtcolearn.planning.validity import ObstacleChecker, in_turn
+    from rrtcolearn.planning.problem import PlanningProblem, obstacle_checker, state_bounds
 
     f = _parse_plan(system, plan if isinstance(plan, dict) else plan.to_dict(), rtol)
     low_u, high_u = f["low"], f["high"]
     u_max = f["u_max"]
     w, dt, tol = f["w"], f["dt"], f["tol"]
-
-    def wrap(x: np.ndarray) -> np.ndarray:
-        return x + system.wrap_shift(x)
-
-    obstacles = ObstacleChecker(in_turn(f["obstacles"], {j: float(system.state_low[j])
-                                                         for j in system.angle_dims}),
-                                None, wrap)
+    obstacles = obstacle_checker(system, f["obstacles"])
     constraints = None
     if f["config"] is not None:
         try:

@@ -50,6 +50,19 @@ def check_state(system: System, value, what: str, low: np.ndarray | None = None,
     return x
 
 
+def obstacle_checker(system: System, obstacles: Sequence[Obstacle],
+                     is_valid: StateValidityChecker | None = None) -> ObstacleChecker:
+    """The validity test of ``obstacles`` (and a user's ``is_valid``) on ``system``: states
+    wrapped by whole turns into the sampling box's turn of each angle, and the boxes moved
+    into that turn (`validity.in_turn`), so an obstacle covers its region on every turn.
+    A problem and `evaluate.check_plan` test obstacles by this one checker."""
+    def wrap(x: np.ndarray) -> np.ndarray:
+        return x + system.wrap_shift(x)
+
+    return ObstacleChecker(in_turn(obstacles, {j: float(system.state_low[j])
+                                                for j in system.angle_dims}), is_valid, wrap)
+
+
 def is_own_limit(system: System, u_max) -> bool:
     """Whether ``u_max`` (a number or one per input) is the symmetric input box ``system``
     saturates at: a model of it plans under that limit as it is (none other)."""
@@ -179,12 +192,7 @@ class PlanningProblem:
                      for o in obstacles]
         except (KeyError, TypeError, ValueError) as exc:
             raise ProblemError(f"invalid obstacle: {exc}") from None
-        built = in_turn(built, {j: float(system.state_low[j]) for j in system.angle_dims})
-
-        def wrap(x: np.ndarray) -> np.ndarray:
-            return x + system.wrap_shift(x)
-
-        validity = ObstacleChecker(built, is_valid, wrap)
+        validity = obstacle_checker(system, built, is_valid)
         if validity:
             for what, x in (("start", start), ("goal", goal)):
                 if not validity(x[None])[0]:
