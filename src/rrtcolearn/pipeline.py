@@ -41,7 +41,7 @@ from rrtcolearn.data.store import (
 from rrtcolearn.errors import ArtefactError, ConfigError, EnvironmentProblem
 from rrtcolearn.learn.models import FUNCTIONS_FORMAT, LearnedFunctions
 from rrtcolearn.planning.problem import PlanningProblem, is_own_limit
-from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn, load_kernels
+from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan
 from rrtcolearn.systems import make
@@ -457,10 +457,9 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
 
 def _fitted_model(system: System, config: Config, functions: LearnedFunctions
                   ) -> FittedModel:
-    """The model of a fit or a load, with the kernels its plans call loaded (compiled the
-    first time, once per system and machine): the first plan costs what later ones do."""
-    load_kernels(system, explore=system.input_limited and
-                 bool(np.isfinite(system.input_limits()).all()))
+    """The model of a fit or a load, with the compiled code its plans call loaded
+    (compiled the first time, once per system and machine) by a throwaway solve: the first
+    plan costs what later ones do."""
     model = FittedModel(system, config, functions, functions.max_duration_,
                         config.generate.max_state_distance)
     _warm_planner(model)
@@ -472,11 +471,13 @@ _WARM_ITERATIONS = 50
 
 
 def _warm_planner(model: FittedModel) -> None:
-    """A throwaway solve from the middle of the box toward a goal it cannot reach: the
-    planner's own compiled functions (the draws' summary, the node index's scan) load from
-    numba's cache with the model, or compile once per installation (about 2 s), instead of
-    inside the first plan's clock. Its outcome does not matter, nor does it touch any
-    later plan (its own planner and generator)."""
+    """A throwaway solve from the middle of the box toward a goal it cannot reach: it loads
+    the system's kernels as every solve does before its clock (`planning.rrt.load_kernels`:
+    for an input-limited system also the random-control iterations, and the LQR loop), and
+    its iterations load the planner's own compiled functions (the draws' summary, the node
+    index's scan), from numba's cache or compiled once per installation (about 2 s),
+    instead of inside the first plan's clock. Its outcome does not matter, nor does it
+    touch any later plan (its own planner and generator)."""
     system = model.system
     low, high = system.state_low, system.state_high
     try:

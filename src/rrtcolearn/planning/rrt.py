@@ -1390,12 +1390,12 @@ def load_kernels(system: System, explore: bool = False, lqr: bool = False) -> No
     yet (numba's on-disk cache; compiled and cached when absent, once per system and
     machine), so that no plan spends its time limit, or its CPU figure, on them.
 
-    `pipeline` calls it when a model is fitted or loaded: the first compiled function a
-    process calls also initialises numba's compiler (about 0.2 s), and both that and the
-    cache loads then count as the model's load, not as the first plan's. `RRTCoLearn.solve`
-    calls it before its clock starts for what that solve may call beyond them: the compiled
-    random-control iterations (``explore``: `integrate.explore_jit`, about 9 s to compile)
-    and the LQR goal connection's loop (``lqr``: `integrate.closed_loop_jit`). Each kernel
+    `RRTCoLearn.solve` calls it before its clock starts, with what that solve may call: the
+    compiled random-control iterations (``explore``: `integrate.explore_jit`, about 9 s to
+    compile) and the LQR goal connection's loop (``lqr``: `integrate.closed_loop_jit`).
+    `pipeline` runs a throwaway solve when a model is fitted or loaded, so the first
+    compiled call of a process (it also initialises numba's compiler, about 0.2 s) and the
+    cache loads count as the model's load, not as the first plan's. Each kernel
     runs once, on a state and parameters in the middle of their boxes and for zero or one
     step, through the function the planner calls it by, so the very signatures a plan uses
     are loaded; a kernel that has a signature already is skipped (microseconds).
