@@ -61,7 +61,7 @@ def _silence_exit_reports() -> None:
 def _quiet_exit() -> None:
     """At interpreter exit, after everything this process had to say: stderr closed, as
     the bindings' nanobind prints some 25 lines of reference-leak reports for OMPL's
-    objects and types while the interpreter shuts down (also in `_isolated_worker`)."""
+    objects and types while the interpreter shuts down (`_isolated_worker` calls it too)."""
     sys.stdout.flush()
     sys.stderr.flush()
     devnull = os.open(os.devnull, os.O_WRONLY)
@@ -360,12 +360,7 @@ def _isolated_worker(conn, fn: Callable, args: tuple) -> None:
                        msg[2] if msg[0] == "error" else traceback.format_exc()))
     finally:
         conn.close()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        # nanobind prints reference-leak reports for OMPL objects at interpreter exit
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, 2)
-        os.close(devnull)
+        _quiet_exit()  # now: a forked child exits without atexit handlers
 
 
 def run_isolated(fn: Callable, *args, process_timeout: float | None = None,
