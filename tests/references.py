@@ -163,14 +163,14 @@ def sparse_rrt_acrobot(x: np.ndarray, u: np.ndarray, p: dict = SPARSE_ACROBOT) -
     joint damping included); x (N, 4) = (theta1, theta2, theta1', theta2'), u = tau."""
     x, u = np.atleast_2d(x), np.atleast_2d(u)
     t1, t2, d1, d2 = x[:, 0] - np.pi / 2, x[:, 1], x[:, 2], x[:, 3]
-    m, l, lc, lc2, l2, I1, I2, g = (p[k] for k in ("m", "l", "lc", "lc2", "l2", "I1", "I2",
+    m, ell, lc, lc2, l2, I1, I2, g = (p[k] for k in ("m", "l", "lc", "lc2", "l2", "I1", "I2",
                                                    "g"))
-    d11 = m * lc2 + m * (l2 + lc2 + 2 * l * lc * np.cos(t2)) + I1 + I2
+    d11 = m * lc2 + m * (l2 + lc2 + 2 * ell * lc * np.cos(t2)) + I1 + I2
     d22 = m * lc2 + I2 + 0 * t2
-    d12 = m * (lc2 + l * lc * np.cos(t2)) + I2
-    c1 = -m * l * lc * d2 * d2 * np.sin(t2) - 2 * m * l * lc * d1 * d2 * np.sin(t2)
-    c2 = m * l * lc * d1 * d1 * np.sin(t2)
-    g1 = (m * lc + m * l) * g * np.cos(t1) + m * lc * g * np.cos(t1 + t2)
+    d12 = m * (lc2 + ell * lc * np.cos(t2)) + I2
+    c1 = -m * ell * lc * d2 * d2 * np.sin(t2) - 2 * m * ell * lc * d1 * d2 * np.sin(t2)
+    c2 = m * ell * lc * d1 * d1 * np.sin(t2)
+    g1 = (m * lc + m * ell) * g * np.cos(t1) + m * lc * g * np.cos(t1 + t2)
     g2 = m * lc * g * np.cos(t1 + t2)
     u1 = -p["damping"] * d1
     u2 = u[:, 0] - p["damping"] * d2

@@ -3,13 +3,16 @@ without learned functions (random-control edges and the connection only): its ed
 re-simulate exactly within the input and state boxes, obstacles are avoided, the same seed
 grows the same tree, a goal that is no equilibrium switches it off."""
 
+import math
+
 import numpy as np
 import pytest
+from tests import references as ref
 
 from rrtcolearn.config import PAPER, PlanConfig
 from rrtcolearn.evaluate import resimulate
 from rrtcolearn.integrate import propagate
-from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
+from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr, step_jacobians
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
@@ -166,3 +169,111 @@ def test_the_compiled_loop_is_the_numpy_loop(quad):
         assert np.all(a.inputs >= lqr.u_low) and np.all(a.inputs <= lqr.u_high)
         ends.add(a.end)
     assert len(ends) >= 2  # more than one way of stopping was compared
+
+
+# --- against independent references (issue 34): the reference dynamics of
+# tests/references.py, a plain RK4 written there, scipy's Riccati solver on the test's own
+# (A, B, Q, R) and the gain's formula by hand. The spectral radius alone (above) passes a
+# gain scaled by 0.7 or the wrong Riccati solution.
+
+REFERENCES = {"quadrotor": ref.quadrotor, "cartpole": ref.cartpole, "pendulum": ref.pendulum}
+DT = 0.02
+
+
+def _reference_lqr(name: str):
+    """(problem, x_e, u_e, A, B, Q, R) for the system's default goal: the equilibrium from
+    the sources (upright at rest; the quadrotor hovers at m g / 2 a rotor), the RK4 step map
+    of the reference dynamics linearised exactly (RK4 of the linearisation: at an
+    equilibrium every stage sits at x_e), and Bryson's weights from the problem's boxes as
+    `build_goal_lqr` documents them."""
+    system = make(name)
+    d = system.defaults
+    problem = PlanningProblem.create(system, d["start"], d["goal"], 0.1)
+    x_e = np.asarray(d["goal"], dtype=float)
+    u_e = np.full(system.n_inputs, ref.QUADROTOR["m"] * ref.QUADROTOR["g"] / 2) \
+        if name == "quadrotor" else np.zeros(system.n_inputs)
+    f = REFERENCES[name]
+    Ac = ref.complex_step_jacobian(lambda x: f(x[None], u_e[None].astype(complex))[0], x_e)
+    Bc = ref.complex_step_jacobian(lambda u: f(x_e[None].astype(complex), u[None])[0], u_e)
+    A, B, term = np.zeros_like(Ac), np.zeros_like(Bc), np.eye(len(x_e))
+    for k in range(5):  # sum_k (dt Ac)^k / k!, dt sum_k (dt Ac)^k / (k + 1)! Bc
+        A += term / math.factorial(k)
+        if k < 4:
+            B += DT * term @ Bc / math.factorial(k + 1)
+        term = term @ (DT * Ac)
+    half_x = 0.5 * (problem.state_high - problem.state_low)
+    half_x[list(system.angle_dims)] = np.pi
+    low_u, high_u = system.input_limits()
+    half_u = 0.5 * (high_u - low_u)
+    r = np.where(np.isfinite(half_u), 1.0 / half_u**2, 1.0)  # R = identity where free
+    return problem, x_e, u_e, A, B, np.diag(DT / half_x**2), np.diag(DT * r)
+
+
+@pytest.mark.parametrize("name", sorted(REFERENCES))
+def test_the_discretisation_is_a_plain_rk4_steps(name):
+    """The linearisation of RK4's step in closed form agrees with central differences of a
+    plain RK4 step of the reference (so the closed form is what the connection means), and
+    `step_jacobians` (the package's) with both."""
+    problem, x_e, u_e, A, B, _, _ = _reference_lqr(name)
+    f, n = REFERENCES[name], len(x_e)
+    z, h = np.concatenate([x_e, u_e]), 1e-5
+    cols = []
+    for j in range(z.size):
+        e = np.zeros(z.size)
+        e[j] = h
+        plus, minus = z + e, z - e
+        cols.append((ref.hold(f, plus[:n], plus[n:], DT, 1)[-1]
+                     - ref.hold(f, minus[:n], minus[n:], DT, 1)[-1]) / (2 * h))
+    jac = np.stack(cols, axis=1)
+    np.testing.assert_allclose(jac[:, :n], A, atol=1e-7)
+    np.testing.assert_allclose(jac[:, n:], B, atol=1e-7)
+    A_pkg, B_pkg = step_jacobians(problem.system, x_e, u_e, DT)
+    np.testing.assert_allclose(A_pkg, A, atol=1e-7)
+    np.testing.assert_allclose(B_pkg, B, atol=1e-7)
+
+
+@pytest.mark.parametrize("name", sorted(REFERENCES))
+def test_the_gain_is_scipys_riccati_solution(name):
+    """K = (R + B'PB)^-1 B'PA with P from `scipy.linalg.solve_discrete_are` on the test's
+    own (A, B, Q, R); the equilibrium where the sources put it."""
+    from scipy.linalg import solve_discrete_are
+
+    problem, x_e, u_e, A, B, Q, R = _reference_lqr(name)
+    P = solve_discrete_are(A, B, Q, R)
+    K = np.linalg.inv(R + B.T @ P @ B) @ B.T @ P @ A
+    lqr = build_goal_lqr(problem, DT)
+    assert isinstance(lqr, GoalLQR), lqr
+    np.testing.assert_allclose(lqr.x_e, x_e, atol=1e-9)
+    np.testing.assert_allclose(lqr.u_e, u_e, atol=1e-9)
+    assert lqr.K.shape == K.shape == (problem.system.n_inputs, problem.system.n_states)
+    np.testing.assert_allclose(lqr.K, K, rtol=1e-6, atol=1e-8 * np.abs(K).max())
+    np.testing.assert_allclose(lqr.P, P, rtol=1e-6, atol=1e-8 * np.abs(P).max())
+    rho = np.abs(np.linalg.eigvals(A - B @ K)).max()
+    assert lqr.spectral_radius == pytest.approx(rho, rel=1e-6) and rho < 1.0
+
+
+@pytest.mark.parametrize("name", sorted(REFERENCES))
+def test_the_closed_loop_holds_the_reference_feedback(name):
+    """`GoalLQR.run`: each held input is clip(u_e - K (x - x_e)) with the reference gain,
+    and each state the plain RK4 of the reference dynamics from the one before."""
+    from scipy.linalg import solve_discrete_are
+
+    problem, x_e, u_e, A, B, Q, R = _reference_lqr(name)
+    P = solve_discrete_are(A, B, Q, R)
+    K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+    lqr = build_goal_lqr(problem, DT)
+    low_u, high_u = problem.system.input_limits()
+    rng = np.random.default_rng(5)
+    half = 0.5 * (problem.state_high - problem.state_low)
+    for _ in range(3):
+        x0 = x_e + rng.uniform(-0.05, 0.05, x_e.size) * half
+        run = lqr.run(x0, 40, problem.constraint_box, lambda s: np.zeros(len(s), bool))
+        assert len(run.inputs) >= 10, run.end
+        for k, u in enumerate(run.inputs):
+            e = run.states[k] - x_e
+            want = np.clip(u_e - K @ e, low_u, high_u)
+            # K to 1e-6 (above): the feedback to 1e-6 of the size of its terms
+            np.testing.assert_allclose(u, want, rtol=0,
+                                       atol=1e-6 * (np.abs(K) @ np.abs(e)).max() + 1e-12)
+            step = ref.hold(REFERENCES[name], run.states[k], u, DT, 1)[-1]
+            np.testing.assert_allclose(run.states[k + 1], step, rtol=1e-10, atol=1e-12)

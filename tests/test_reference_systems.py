@@ -3,17 +3,19 @@
 the paper for the pendulum): the plain dynamics, the compiled RK4 the planner steps with,
 and the compiled state+costate equations of the data generation, at random states and
 inputs. `check_system` compares a system's generated functions with each other, so a wrong
-mass or sign passes it; these fail. (The examples' sparse_rrt systems are checked against
-sparse_rrt's C++ in tests/test_external_problems.py.)"""
+mass or sign passes it; these fail. The examples' sparse_rrt systems likewise, against
+sparse_rrt's C++ (`update_derivative`), their input limits included."""
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 import pytest
+from tests import references as ref
 
 from rrtcolearn.integrate import propagate
 from rrtcolearn.systems import make
-from tests import references as ref
 
 # name -> (reference dynamics, input range to draw from, the energy and the input's power
 # where the reference has them)
@@ -22,6 +24,10 @@ SYSTEMS = {
     "acrobot": (ref.acrobot, (-20.0, 20.0), ref.acrobot_energy, ref.acrobot_power),
     "quadrotor": (ref.quadrotor, (0.0, 4.768), None, None),
     "pendulum": (ref.pendulum, (-3.0, 3.0), None, None),
+    "examples.sparse_rrt_cartpole:make_cartpole": (ref.sparse_rrt_cartpole, (-300.0, 300.0),
+                                                   None, None),
+    "examples.sparse_rrt_acrobot:make_acrobot": (ref.sparse_rrt_acrobot, (-4.0, 4.0), None,
+                                                 None),
 }
 
 
@@ -36,7 +42,11 @@ def _samples(system, rng, n: int, lo: float, hi: float) -> tuple[np.ndarray, np.
 
 @pytest.fixture(scope="module", params=sorted(SYSTEMS))
 def shipped(request):
-    return request.param, make(request.param)
+    name = request.param
+    if ":" in name:  # an example, built as a user would
+        module, factory = name.split(":")
+        return name, getattr(importlib.import_module(module), factory)()
+    return name, make(name)
 
 
 def test_dynamics_are_the_textbooks(shipped):
