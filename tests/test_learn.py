@@ -156,3 +156,135 @@ def test_compiled_knn_answers_are_numpys():
     np.testing.assert_array_equal(
         _covered(X, lo, cell, np.array(grid.shape), np.array(grid.strides), grid.ravel()),
         inside & grid.ravel()[flat])
+
+
+# --- Alg. 1's parent choice against brute force (issue 34) -------------------------------
+# `best_valid` is the row of a batch of queries that V accepts with the least J, the first
+# among equal J. Its k-NN branch goes through `query_valid` (a bounded tree search, a
+# coverage prefilter, an adaptive 1-NN prefilter); its network branch through a different
+# algorithm (rows sorted by the networks' J, V asked in that order until one is valid).
+# Brute force here: every distance to every training input (and to its copies one turn over
+# in the angles, where the model wraps them), the m smallest, V's sum, J's mean or the
+# network's forward pass written out, and a plain argmin.
+
+
+def _clustered_dataset(rng, n_centres: int = 30, per: int = 5):
+    """A pendulum dataset of tight clusters (valid queries exist near each centre), some
+    centres near the angle's seam; integer costs so that means tie exactly."""
+    from rrtcolearn.data.dataset import Dataset
+
+    centres = rng.uniform([-1.5 * np.pi, -np.pi, -1.5 * np.pi, -np.pi],
+                          [0.5 * np.pi, np.pi, 0.5 * np.pi, np.pi], size=(n_centres, 4))
+    centres[:5, 0] = rng.uniform(-1.5 * np.pi, -1.45 * np.pi, 5)  # at the low seam
+    centres[5:10, 0] = rng.uniform(0.45 * np.pi, 0.5 * np.pi, 5)  # at the high seam
+    X = np.repeat(centres, per, axis=0) + rng.normal(0.0, 0.04, size=(n_centres * per, 4))
+    X[:, 0] = np.clip(X[:, 0], -1.5 * np.pi, 0.5 * np.pi - 1e-9)
+    N = len(X)
+    return Dataset(x0=X[:, :2], x1=X[:, 2:], cost=rng.integers(1, 7, N).astype(float),
+                   params=rng.uniform(-0.5 * np.pi, 1.5 * np.pi, (N, 1)),
+                   duration=rng.uniform(0.1, 1.0, N), costate=np.zeros((N, 2)),
+                   simulation=np.arange(N)), centres
+
+
+def _queries(rng, data, centres, q: int) -> np.ndarray:
+    """Near data (mostly valid), anywhere (mostly invalid), and repeats (exact ties)."""
+    near = data.inputs[rng.integers(0, len(data), q)] + rng.normal(0.0, 0.03, (q, 4))
+    near[:, 0] = np.clip(near[:, 0], -1.5 * np.pi, 0.5 * np.pi - 1e-9)
+    anywhere = rng.uniform(centres.min(axis=0), centres.max(axis=0), (q, 4))
+    X = np.concatenate([near, anywhere])[rng.permutation(2 * q)][: rng.integers(1, 2 * q + 1)]
+    return np.concatenate([X, X[rng.integers(0, len(X), rng.integers(0, 4))]])
+
+
+def _brute_neighbours(data, X: np.ndarray, m: int, periodic: bool):
+    """(data rows (Q, m) and distances (Q, m) of the m nearest training inputs) over every
+    point, the copies one turn over in theta (of x0 and x1 together) included where
+    ``periodic``. The pendulum's metric weights are 2 pi / (its box's width) = 1."""
+    scale = np.tile(2.0 * np.pi / (np.array([0.5, 1.0]) * np.pi - np.array([-1.5, -1.0])
+                                   * np.pi), 2)
+    points, source = data.inputs, np.arange(len(data))
+    if periodic:
+        turn = np.array([2.0 * np.pi, 0.0, 2.0 * np.pi, 0.0])
+        points = np.concatenate([points - turn, points, points + turn])
+        source = np.tile(source, 3)
+    d = np.sqrt((((X[:, None, :] - points[None]) * scale) ** 2).sum(axis=2))
+    nearest = np.argsort(d, axis=1, kind="stable")[:, :m]
+    return source[nearest], np.take_along_axis(d, nearest, axis=1)
+
+
+def _brute_best(valid: np.ndarray, J: np.ndarray) -> int:
+    """The first valid row of least J, -1 if none."""
+    if not valid.any():
+        return -1
+    return int(np.flatnonzero(valid & (J == J[valid].min()))[0])
+
+
+@pytest.mark.parametrize("periodic", [False, True])
+def test_best_valid_knn_is_the_brute_force_argmin(periodic):
+    from rrtcolearn.learn.models import best_valid
+    from rrtcolearn.systems import make
+
+    system = make("pendulum")
+    rng = np.random.default_rng(11)
+    data, centres = _clustered_dataset(rng)
+    m, threshold, bounds = 3, 0.3, (1e-5, 1e5)
+    f = LearnedFunctions(n_neighbors=m, validity_threshold=threshold, cost_bounds=bounds,
+                         periodic=periodic).fit(data, system)
+    found = ties = 0
+    for _ in range(150):
+        X = _queries(rng, data, centres, int(rng.integers(1, 25)))
+        rows, dist = _brute_neighbours(data, X, m, periodic)
+        valid = dist.sum(axis=1) <= threshold
+        J = np.clip(data.cost[rows].mean(axis=1), *bounds)
+        want = _brute_best(valid, J)
+        row, neighbours = best_valid(f, X)
+        assert row == want
+        if want < 0:
+            assert neighbours is None
+            continue
+        found += 1
+        ties += int((valid & (J == J[want])).sum() > 1)
+        # the neighbours handed to U are the brute-force ones (as data rows)
+        assert sorted(f.source_[neighbours].tolist()) == sorted(rows[want].tolist())
+    assert found >= 50 and ties >= 10  # both outcomes and the tie rule were exercised
+
+
+def test_best_valid_network_branch_is_the_brute_force_argmin():
+    """The networks' J (their forward pass written out here from their weights: standardise,
+    relu layers, undo the standardisation, exp of the log cost, clip) and brute-force V."""
+    from rrtcolearn.learn.models import best_valid
+    from rrtcolearn.systems import make
+
+    system = make("pendulum")
+    rng = np.random.default_rng(12)
+    data, centres = _clustered_dataset(rng)
+    m, threshold, bounds = 3, 0.3, (1e-5, 1e5)
+    f = LearnedFunctions(n_neighbors=m, validity_threshold=threshold, cost_bounds=bounds,
+                         learner="mlp", mlp_hidden=(16, 16), mlp_max_iter=20,
+                         mlp_max_samples=None, seed=3).fit(data, system)
+    net = f.networks_[0]
+
+    def network_cost(X: np.ndarray) -> np.ndarray:
+        h = (X - net.x_mean_) / net.x_std_
+        for w, b in zip(net.coefs_[:-1], net.intercepts_[:-1], strict=True):
+            h = np.maximum(h @ w + b, 0.0)
+        z = (h @ net.coefs_[-1] + net.intercepts_[-1])[:, 0] * net.z_std_[0] + net.z_mean_[0]
+        return np.clip(np.exp(z), *bounds)
+
+    found = 0
+    for _ in range(150):
+        X = _queries(rng, data, centres, int(rng.integers(1, 25)))
+        _, dist = _brute_neighbours(data, X, m, True)
+        valid = dist.sum(axis=1) <= threshold
+        J = network_cost(X)
+        want = _brute_best(valid, J)
+        row, neighbours = best_valid(f, X)
+        assert neighbours is None
+        if want < 0:
+            assert row == -1
+            continue
+        found += 1
+        # the same row, or one whose J equals the least to rounding (the networks' batch
+        # and row-by-row products differ in the last bits)
+        assert valid[row] and J[row] <= J[want] * (1 + 1e-12), (row, want)
+        assert row == want or abs(J[row] - J[want]) <= 1e-12 * J[want]
+    assert found >= 50
