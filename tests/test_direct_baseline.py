@@ -7,6 +7,8 @@ import pytest
 
 pytest.importorskip("casadi")
 
+from tests import references
+
 from rrtcolearn.baselines.direct import (
     casadi_available,
     dataset_points,
@@ -21,7 +23,6 @@ from rrtcolearn.baselines.direct import (
     solve_direct_rrt,
 )
 from rrtcolearn.evaluate import replay
-from rrtcolearn.integrate import rk4_step
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.systems.pendulum import make_pendulum
@@ -82,12 +83,13 @@ def test_execution_gap_and_polish():
     assert sol.success
     u, states = execute(sol, 0.01)
     assert len(u) == max(1, round(sol.duration / 0.01))
-    # the numpy reference RK4 of the plain dynamics agrees with the compiled execution
-    pend, x, ref = make_pendulum(), x0[None], []
+    # the compiled execution is a plain RK4 (tests/references.py) of the paper's pendulum
+    # theta'' = sin(theta) + u, each input held for one step
+    x, want = x0, []
     for uk in u:
-        x = rk4_step(lambda z, uk=uk: pend.dynamics(z, np.array([[uk]])), x, 0.01)
-        ref.append(x[0])
-    np.testing.assert_allclose(np.array(ref), states, atol=1e-10)
+        x = references.hold(references.pendulum, x, [uk], 0.01, 1)[-1]
+        want.append(x)
+    np.testing.assert_allclose(states, np.array(want), rtol=0, atol=1e-10)
     raw_gap = np.linalg.norm(states[-1] - x1)
     fixed = polish(solver, sol, time_weight=1.0, u_max=None)
     assert fixed.duration == pytest.approx(round(sol.duration / 0.01) * 0.01, abs=1e-9)
