@@ -248,6 +248,7 @@ def test_best_valid_knn_is_the_brute_force_argmin(periodic):
     assert found >= 50 and ties >= 10  # both outcomes and the tie rule were exercised
 
 
+@pytest.mark.filterwarnings("ignore:Got `batch_size`:UserWarning")  # 150 rows: one batch
 def test_best_valid_network_branch_is_the_brute_force_argmin():
     """The networks' J (their forward pass written out here from their weights: standardise,
     relu layers, undo the standardisation, exp of the log cost, clip) and brute-force V."""
