@@ -210,7 +210,7 @@ def _reference_lqr(name: str):
 
 
 @pytest.mark.parametrize("name", sorted(REFERENCES))
-def test_the_discretisation_is_a_plain_rk4_steps(name):
+def test_the_discretisation_is_a_plain_rk4_step(name):
     """The linearisation of RK4's step in closed form agrees with central differences of a
     plain RK4 step of the reference (so the closed form is what the connection means), and
     `step_jacobians` (the package's) with both."""
