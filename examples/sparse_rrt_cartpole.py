@@ -1,7 +1,8 @@
 """sparse_rrt's cart-pole benchmark (`cart_pole`), typed in through `build_system` as a user would.
 
 Source: sparse_rrt (Littlefield, Li, Bekris; its src/systems/cart_pole.cpp), the problem as
-written out here and in docs/external_problems.md. State (x, v, theta, w), theta = pi upright (unstable),
+written out here and in docs/external_problems.md. State (x, v, theta, w), theta = pi
+upright (unstable),
 theta = 0 hanging; I = 10, L = 2.5, M = 10, m = 5, g = 9.8, force F on the cart:
 
     D  = (M + m)(I + m L^2) - m^2 L^2 cos^2(theta)
