@@ -6,6 +6,8 @@ import re
 import tomllib
 from pathlib import Path
 
+import pytest
+
 from rrtcolearn.config import Config, validate
 
 ROOT = Path(__file__).parents[1]
@@ -54,3 +56,53 @@ def test_library_snippets_run_as_written(tmp_path, monkeypatch, capsys):
         exec(compile(block, "docs", "exec"), {})
         status = capsys.readouterr().out.split()[0]
         assert status == "exact"
+
+
+def _anchors(markdown: str) -> set[str]:
+    """GitHub's anchors of a page's headings: lower case, punctuation dropped, spaces to
+    hyphens, repeats numbered."""
+    seen: dict[str, int] = {}
+    out = set()
+    text = re.sub(r"```.*?```", "", markdown, flags=re.S)  # no headings inside code
+    for heading in re.findall(r"^#{1,6} (.+)$", text, re.M):
+        slug = re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+        n = seen.get(slug, 0)
+        seen[slug] = n + 1
+        out.add(slug if n == 0 else f"{slug}-{n}")
+    return out
+
+
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+LINKS = [(page, target) for page in PAGES
+         for target in re.findall(r"\]\(([^)\s]+)\)",
+                                  re.sub(r"```.*?```", "", page.read_text(), flags=re.S))
+         if not re.match(r"[a-z]+:", target)]
+
+
+def _param(page: Path, target: str):
+    marks = ()
+    if target.endswith("architecture.md"):  # another engineer's page, not on every branch yet
+        marks = pytest.mark.xfail(not (ROOT / "docs" / "architecture.md").exists(),
+                                  reason="docs/architecture.md comes with issue 29")
+    return pytest.param(page, target, marks=marks, id=f"{page.name}->{target}")
+
+
+@pytest.mark.parametrize("page,target", [_param(*link) for link in LINKS])
+def test_documentation_links_resolve_inside_the_repository(page, target):
+    """Every relative link of the README and docs/ names a file of the repository, and an
+    anchor a heading of it; no link leaves the repository."""
+    path, _, anchor = target.partition("#")
+    file = (page.parent / path).resolve() if path else page
+    assert file.exists(), f"{page.name}: link to a missing {target}"
+    assert ROOT in file.parents, f"{page.name}: link out of the repository {target}"
+    if anchor:
+        assert anchor in _anchors(file.read_text()), f"{page.name}: no heading #{anchor} in {path}"
+
+
+def test_readme_has_no_commit_hash_date_or_outside_link():
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= 300
+    assert not re.findall(r"\b[0-9a-f]{7,40}\b", text)
+    assert not re.findall(r"\b20\d\d-\d\d-\d\d\b", text)
+    assert not re.findall(r"\]\((?:https?:|/)", text)
+    assert "this machine" not in text
