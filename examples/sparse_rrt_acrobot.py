@@ -1,8 +1,9 @@
 """sparse_rrt's acrobot benchmark (`two_link_acrobot`), typed in through `build_system`.
 
-Source: /work/shared/problems/EXTERNAL.md (sparse_rrt, Littlefield, Li, Bekris;
-src/systems/two_link_acrobot.cpp there), the model as sparse_rrt ships it, its "extra" terms
-included. State (theta1, theta2, theta1', theta2'), theta1 = 0 hanging, both angles wrapping;
+Source: sparse_rrt (Littlefield, Li, Bekris; its src/systems/two_link_acrobot.cpp), the
+model as sparse_rrt ships it, its "extra" terms included; the anchors (sparse_rrt's own SST
+on this problem) are in docs/external_problems.md. State (theta1, theta2, theta1', theta2'),
+theta1 = 0 hanging, both angles wrapping;
 m = 1, l = 1, lc = 0.5, lc2 = 0.25, l2 = 1, I1 = 0.2, I2 = 1.0, g = 9.8, t1 = theta1 - pi/2,
 t2 = theta2, elbow torque tau:
 

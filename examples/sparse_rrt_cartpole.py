@@ -1,7 +1,8 @@
 """sparse_rrt's cart-pole benchmark (`cart_pole`), typed in through `build_system` as a user would.
 
-Source: /work/shared/problems/EXTERNAL.md (sparse_rrt, Littlefield, Li, Bekris;
-src/systems/cart_pole.cpp there). State (x, v, theta, w), theta = pi upright (unstable),
+Source: sparse_rrt (Littlefield, Li, Bekris; its src/systems/cart_pole.cpp), the problem as
+written out here and in docs/external_problems.md. State (x, v, theta, w), theta = pi
+upright (unstable),
 theta = 0 hanging; I = 10, L = 2.5, M = 10, m = 5, g = 9.8, force F on the cart:
 
     D  = (M + m)(I + m L^2) - m^2 L^2 cos^2(theta)
@@ -19,8 +20,8 @@ all four coordinates (`GOAL_RADIUS`; plan.wrap_goal stays false, as in sparse_rr
 Differences from sparse_rrt that remain (docs/external_problems.md):
 - sparse_rrt integrates with explicit Euler and clamps v and w to their bounds after every
   step (a saturation); rrtcolearn treats the box as a state constraint (an edge leaving it is
-  invalid), which is stricter. `make_cartpole_wide` widens the velocity bounds by 50% for the
-  sensitivity row EXTERNAL.md asks for.
+  invalid), which is stricter. `make_cartpole_wide` widens the velocity bounds by 50% for a
+  sensitivity row.
 - sparse_rrt's planner state box and its sampling box are one; here too (the planner's
   constraints could differ from the data's box through plan.state_low/high).
 
