@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench bench-anytime bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup lint clean-venv
+.PHONY: run test fuzz bench bench-anytime bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup lint clean-venv
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,6 +17,13 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest
+
+# the property-based tests on hypothesis's random "wide" profile (5 000 examples each, ten times
+# the derandomized "ci" profile `make test` runs, a new draw every run), then 100 000 seeded
+# random damages of a dataset file (bench/damage_fuzz.py)
+fuzz: $(STAMP)
+	HYPOTHESIS_PROFILE=wide $(BIN)/python -m pytest tests/test_fuzz.py
+	$(BIN)/python bench/damage_fuzz.py --trials 100000
 
 bench: $(STAMP)
 	$(BIN)/python bench/run_bench.py

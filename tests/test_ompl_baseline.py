@@ -6,6 +6,7 @@ creates an OMPL random generator; results are cached per module.
 """
 
 import numpy as np
+import ompl  # noqa: F401  (an extra: `make test` installs it; missing, the suite fails)
 import pytest
 
 from rrtcolearn import planners
@@ -14,8 +15,6 @@ from rrtcolearn.evaluate import replay
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan
-
-pytest.importorskip("ompl")  # the module above imports ompl lazily, so this import works
 
 START = [-np.pi, 0.0]
 GOAL = np.array([0.0, 0.0])

@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+import distributed  # an extra: `make test` installs it; missing, the suite fails
 import numpy as np
 import pytest
 
@@ -36,14 +37,12 @@ def test_process_workers_do_not_change_the_data(pendulum, serial, workers):
 
 
 def test_dask_local_cluster_gives_the_same_data(pendulum, serial):
-    pytest.importorskip("distributed")
     data, _ = generate_data(pendulum, 21, 3000, chunk_size=250,
                             settings=ExecutionSettings("dask", 2))
     assert same(data, serial)
 
 
 def test_a_killed_dask_worker_costs_only_its_chunk(pendulum, serial):
-    distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster, \
             distributed.Client(cluster) as client:
