@@ -12,7 +12,7 @@ loaded with `load_dataset`. Outcomes: ``refused`` (ArtefactError, one line), ``i
 the failures ``accepted-different`` and ``raised <type>`` (anything else escaping the loader),
 each failure printed with its trial number and damage so it can be replayed.
 
-    python bench/damage_fuzz.py [--trials 100000] [--seed 0] [--simulations 40]
+    python bench/damage_fuzz.py [--trials 100000] [--seed 0] [--simulations 10]
 
 Prints counts per kind and outcome, the CPU time, and last one JSON line; exits 1 if any
 trial failed. 100 000 trials take a few CPU minutes.
@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--trials", type=int, default=100_000)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--simulations", type=int, default=40)
+    ap.add_argument("--simulations", type=int, default=10)
     args = ap.parse_args(argv)
 
     shm = Path("/dev/shm")

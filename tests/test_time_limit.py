@@ -1,18 +1,14 @@
-"""The time limits themselves: a wall-clock or CPU limit stops `solve`, and the anytime scheme
-spends a time budget. The only tests that assert durations, each with a wide margin above
-(a loaded machine stretches a run, never shortens it below its limit)."""
+"""The time limits themselves: a wall-clock or CPU limit stops `solve` (the anytime scheme's
+time budgets: test_anytime.py). With those, the only tests that assert durations, each with a
+wide margin above (a loaded machine stretches a run, never shortens it below its limit)."""
 
 from __future__ import annotations
 
 import time
-from itertools import pairwise
 
 import numpy as np
-import pytest
 
 from rrtcolearn import pipeline, planners
-from rrtcolearn.anytime import solve_with_restarts
-from rrtcolearn.evaluate import resimulate
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.termination import TerminationCondition
 
@@ -46,41 +42,3 @@ def test_a_cpu_limit_stops_solve(paper_model, pendulum):
     cpu = time.process_time() - cpu
     assert not p.solved and p.status == "approximate" and p.iterations > 0
     assert LIMIT <= cpu < LIMIT + MARGIN  # the process's CPU, which the limit counts
-
-
-def test_the_anytime_scheme_spends_a_time_budget(paper_model):
-    """With a time limit (no iteration limit) the restarts and shortcuts run until the limit;
-    the first solution is the plain solve's (same seed), later ones only improve it."""
-    cfg = paper_model.config.model_copy(update={"plan": paper_model.config.plan.model_copy(
-        update={"anytime": True})})
-    first = pipeline.plan(paper_model, START, GOAL, 0.1, 3, time_limit=None,
-                          max_iterations=3000)
-    wall = time.perf_counter()
-    p = pipeline.plan(paper_model, START, GOAL, 0.1, 3, config=cfg, time_limit=LIMIT,
-                      max_iterations=None)
-    wall = time.perf_counter() - wall
-    a = p.extra["anytime"]
-    assert LIMIT <= wall < LIMIT + MARGIN
-    assert p.solved and a["solves"] > 1 and a["scheme"] == "restarts+shortcut"
-    costs = [c for _, c in a["progress"]]
-    assert costs[0] == pytest.approx(first.path_cost, rel=1e-12)
-    assert all(b < c for c, b in pairwise(costs)) and p.path_cost == costs[-1]
-    r = resimulate(paper_model.system, p)
-    assert r["max_gap"] < 1e-9 and r["path_cost"] == pytest.approx(p.path_cost, rel=1e-9)
-
-
-def test_the_restart_baseline_spends_a_cpu_budget(pendulum):
-    problem = PlanningProblem.create(pendulum, START, GOAL, 0.3, u_max=2.0)
-    peer = planners.make("random-rrt", time_weight=1.0)
-
-    def solve(termination, seed):
-        return peer.solve(problem, termination, seed)
-
-    cpu = time.process_time()
-    p = solve_with_restarts(solve, TerminationCondition(time_limit=None, cpu_time_limit=LIMIT),
-                            seed=1)
-    cpu = time.process_time() - cpu
-    a = p.extra["anytime"]
-    assert LIMIT <= cpu < LIMIT + MARGIN
-    assert p.solved and a["scheme"] == "restarts" and a["solves"] > 1
-    assert p.path_cost == min(c for _, c in a["progress"])
