@@ -1,21 +1,25 @@
-"""Random damage to a dataset file: every damaged copy is refused with the one-line
+"""Random damage to an artefact file: every damaged copy is refused with the one-line
 `ArtefactError` or loads byte-identical to the original.
 
-A tiny pendulum dataset (``--simulations`` simulations, seeded) is saved with
-`save_dataset`; each trial damages its bytes in one of four ways, drawn in turn from a seeded
-generator: ``flip`` (1-4 bytes XORed with a random non-zero byte), ``truncate`` (cut at a
-random length), ``garbage`` (up to 300 random bytes, half of them behind a zip local-file
-signature so the loader gets past its first check) and ``append`` (1-50 random bytes after
-the end). The damaged bytes are written to a file on tmpfs (``/dev/shm`` where it exists) and
-loaded with `load_dataset`. Outcomes: ``refused`` (ArtefactError, one line), ``identical``
-(loaded; every array equal in dtype, shape and bytes to the original's, header equal) and
-the failures ``accepted-different`` and ``raised <type>`` (anything else escaping the loader),
-each failure printed with its trial number and damage so it can be replayed.
+The artefact (``--artefact``): a tiny pendulum ``dataset`` (``--simulations`` simulations,
+seeded; `save_dataset` / `load_dataset`), the ``model`` fitted on it (`LearnedFunctions.save`
+/ `LearnedFunctions.load`, the learned-functions .npz of a run) or a ``plan`` file planned with
+that model (`write_plan` / `read_plan`, checked JSON). Each trial damages its bytes in one of
+four ways, drawn in turn from a seeded generator: ``flip`` (1-4 bytes XORed with a random
+non-zero byte), ``truncate`` (cut at a random length), ``garbage`` (up to 300 random bytes,
+half of them behind a zip local-file signature so the loader gets past its first check) and
+``append`` (1-50 random bytes after the end). The damaged bytes are written to a file on tmpfs
+(``/dev/shm`` where it exists) and loaded. Outcomes: ``refused`` (ArtefactError, one line),
+``identical`` (loaded, and its content equal to the original's: every array in dtype, shape
+and bytes and the header, or the whole plan document) and the failures
+``accepted-different`` and ``raised <type>`` (anything else escaping the loader), each failure
+printed with its trial number and damage so it can be replayed.
 
-    python bench/damage_fuzz.py [--trials 100000] [--seed 0] [--simulations 10]
+    python bench/damage_fuzz.py [--artefact dataset] [--trials 100000] [--seed 0]
+                                [--simulations 10]
 
 Prints counts per kind and outcome, the CPU time, and last one JSON line; exits 1 if any
-trial failed. 100 000 trials take a few CPU minutes.
+trial failed. 100 000 trials of the dataset take under a minute of CPU.
 """
 
 from __future__ import annotations
@@ -27,13 +31,17 @@ import sys
 import tempfile
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+from rrtcolearn.config import load_config
 from rrtcolearn.data.generate import generate_data
-from rrtcolearn.data.store import DATASET_FORMAT, load_arrays, load_dataset, save_dataset
+from rrtcolearn.data.store import load_dataset, save_dataset
 from rrtcolearn.errors import ArtefactError
+from rrtcolearn.learn import LearnedFunctions
+from rrtcolearn.pipeline import FittedModel, fit_functions, plan, read_plan, write_plan
 from rrtcolearn.systems import make
 
 KINDS = ("flip", "truncate", "garbage", "append")
@@ -61,8 +69,49 @@ def damage(raw: bytes, kind: str, rng: np.random.Generator) -> tuple[bytes, str]
     return bytes(b) + tail, f"append {len(tail)} bytes"
 
 
+def _arrays(load_file):
+    """A loader returning (arrays, header) of an .npz artefact after ``load_file`` read it."""
+    def load(path: Path):
+        _, meta = load_file(path)  # the artefact's own loader: what a user's command runs
+        with np.load(path, allow_pickle=False) as npz:  # it accepted: then read what it read
+            return {k: npz[k] for k in npz.files}, meta
+    return load
+
+
+def artefact(kind: str, simulations: int, workdir: Path) -> tuple[Callable, bytes]:
+    """(loader, original bytes) of a freshly made artefact of ``kind``."""
+    system = make("pendulum")
+    data, _ = generate_data(system, 7, simulations, chunk_size=simulations)
+    path = workdir / "original"
+    if kind == "dataset":
+        save_dataset(path, data, {"system": "pendulum"})
+        return _arrays(load_dataset), path.read_bytes()
+    config = load_config(overrides=["learn.learner='knn'", "learn.validity_threshold=0.5"])
+    functions = fit_functions(system, data, config)
+    if kind == "model":
+        functions.save(path, {"system": "pendulum"})
+        return _arrays(LearnedFunctions.load), path.read_bytes()
+    model = FittedModel(system, config, functions, float(data.duration.max()),
+                        config.generate.max_state_distance)
+    write_plan(plan(model, [-np.pi, 0.0], [0.0, 0.0], 0.3, 0, time_limit=None,
+                    max_iterations=50), path)
+    return read_plan, path.read_bytes()
+
+
+def same(a, b) -> bool:
+    """Equal content: plan documents equal; arrays equal in dtype, shape and bytes, and
+    headers equal."""
+    if isinstance(a, dict):
+        return a == b
+    (arrays, meta), (arrays0, meta0) = a, b
+    return meta == meta0 and arrays.keys() == arrays0.keys() and all(
+        arrays[k].dtype == arrays0[k].dtype and arrays[k].shape == arrays0[k].shape
+        and arrays[k].tobytes() == arrays0[k].tobytes() for k in arrays0)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--artefact", choices=("dataset", "model", "plan"), default="dataset")
     ap.add_argument("--trials", type=int, default=100_000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--simulations", type=int, default=10)
@@ -70,13 +119,12 @@ def main(argv: list[str] | None = None) -> int:
 
     shm = Path("/dev/shm")
     workdir = Path(tempfile.mkdtemp(dir=shm if shm.is_dir() else None, prefix="damage-fuzz-"))
-    original_path, target = workdir / "original.npz", workdir / "damaged.npz"
-    data, _ = generate_data(make("pendulum"), 7, args.simulations, chunk_size=args.simulations)
-    save_dataset(original_path, data, {"system": "pendulum"})
-    raw = original_path.read_bytes()
-    original, original_meta = load_arrays(original_path, DATASET_FORMAT)
-    print(f"dataset: {len(data)} rows, {len(raw)} bytes; {args.trials} trials, "
-          f"seed {args.seed}; files in {workdir}")
+    load, raw = artefact(args.artefact, args.simulations, workdir)
+    target = workdir / "damaged"
+    target.write_bytes(raw)
+    original = load(target)
+    print(f"{args.artefact}: {len(raw)} bytes; {args.trials} trials, seed {args.seed}; "
+          f"files in {workdir}")
 
     rng = np.random.default_rng(args.seed)
     counts: Counter[tuple[str, str]] = Counter()
@@ -87,8 +135,7 @@ def main(argv: list[str] | None = None) -> int:
         damaged, what = damage(raw, kind, rng)
         target.write_bytes(damaged)
         try:
-            load_dataset(target)
-            arrays, meta = load_arrays(target, DATASET_FORMAT)
+            content = load(target)
         except ArtefactError as exc:
             outcome = "refused" if "\n" not in str(exc) else "refused over several lines"
             detail = str(exc)
@@ -96,10 +143,7 @@ def main(argv: list[str] | None = None) -> int:
             outcome = f"raised {type(exc).__name__}"
             detail = str(exc)
         else:
-            same = meta == original_meta and arrays.keys() == original.keys() and all(
-                arrays[k].dtype == original[k].dtype and arrays[k].shape == original[k].shape
-                and arrays[k].tobytes() == original[k].tobytes() for k in original)
-            outcome = "identical" if same else "accepted-different"
+            outcome = "identical" if same(content, original) else "accepted-different"
             detail = ""
         counts[kind, outcome] += 1
         if outcome not in ("refused", "identical"):
@@ -116,7 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     for kind in KINDS:
         print(f"{kind:<10}" + "".join(f"{counts[kind, o]:>22}" for o in outcomes))
     print(f"\n{args.trials} trials, {failures} failures, {cpu:.1f} s CPU")
-    print(json.dumps({"trials": args.trials, "seed": args.seed, "bytes": len(raw),
+    print(json.dumps({"artefact": args.artefact, "trials": args.trials, "seed": args.seed,
+                      "bytes": len(raw),
                       "failures": failures, "cpu_s": round(cpu, 1),
                       "counts": {f"{k}/{o}": n for (k, o), n in sorted(counts.items())}}))
     return 1 if failures else 0
