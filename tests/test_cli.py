@@ -566,8 +566,8 @@ def test_dask_options_give_the_serial_dataset(tmp_path):
     import distributed
 
     serial = _generated_digest(tmp_path, "serial")
-    assert _generated_digest(tmp_path, "local", "--dask-local", "2") == serial
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+    assert _generated_digest(tmp_path, "local", "--dask-local", "1") == serial
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster:
         assert _generated_digest(tmp_path, "remote", "--scheduler",
                                  cluster.scheduler_address) == serial
