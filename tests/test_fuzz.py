@@ -260,6 +260,8 @@ SAFE = ["--set", "generate.n_simulations=30", "--set", "generate.chunk_size=10",
                                "learn.n_neighbors=1", "/nonexistent.toml", "2", "-5"]))),
                 max_size=3))
 @example("generate", [("--config", "\x1e0")])  # found: a control character in an error message
+@example("clean", [("--bogus", "1")])  # click's usage errors were several lines
+@example("generate", [("--seed", "x")])
 def test_every_command_line(tmp_path_factory, command, args):
     out = tmp_path_factory.mktemp("c") / "run"
     argv = [command]
