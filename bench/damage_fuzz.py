@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
+import shutil
 import sys
 import tempfile
 import time
@@ -109,16 +109,10 @@ def same(a, b) -> bool:
         and arrays[k].tobytes() == arrays0[k].tobytes() for k in arrays0)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--artefact", choices=("dataset", "model", "plan"), default="dataset")
-    ap.add_argument("--trials", type=int, default=100_000)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--simulations", type=int, default=10)
-    args = ap.parse_args(argv)
-
-    shm = Path("/dev/shm")
-    workdir = Path(tempfile.mkdtemp(dir=shm if shm.is_dir() else None, prefix="damage-fuzz-"))
+def trials(args: argparse.Namespace, workdir: Path
+           ) -> tuple[Counter[tuple[str, str]], int, float, bytes]:
+    """Run the trials in ``workdir``: counts per (kind, outcome), failures, CPU seconds and
+    the original bytes."""
     load, raw = artefact(args.artefact, args.simulations, workdir)
     target = workdir / "damaged"
     target.write_bytes(raw)
@@ -150,10 +144,23 @@ def main(argv: list[str] | None = None) -> int:
             failures += 1
             if failures <= 20:
                 print(f"FAIL trial {trial}: {what}: {outcome} {detail}"[:300])
-    cpu = time.process_time() - cpu0
-    for f in workdir.iterdir():
-        f.unlink()
-    os.rmdir(workdir)
+    return counts, failures, time.process_time() - cpu0, raw
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--artefact", choices=("dataset", "model", "plan"), default="dataset")
+    ap.add_argument("--trials", type=int, default=100_000)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--simulations", type=int, default=10)
+    args = ap.parse_args(argv)
+
+    shm = Path("/dev/shm")
+    workdir = Path(tempfile.mkdtemp(dir=shm if shm.is_dir() else None, prefix="damage-fuzz-"))
+    try:
+        counts, failures, cpu, raw = trials(args, workdir)
+    finally:
+        shutil.rmtree(workdir)
 
     outcomes = sorted({o for _, o in counts})
     print(f"\n{'kind':<10}" + "".join(f"{o:>22}" for o in outcomes))
