@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench bench-anytime bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup lint clean-venv
+.PHONY: run test fuzz bench bench-anytime bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup lint clean-venv
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,6 +17,15 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest
+
+# the property-based tests on hypothesis's random "wide" profile (5 000 examples each, ten times
+# the derandomized "ci" profile `make test` runs, a new draw every run), then 100 000 seeded
+# random damages each of a dataset, a model and a plan file (bench/damage_fuzz.py: about
+# 1, 5 and 0.5 CPU minutes)
+fuzz: $(STAMP)
+	HYPOTHESIS_PROFILE=wide $(BIN)/python -m pytest tests/test_fuzz.py
+	for a in dataset model plan; do \
+	    $(BIN)/python bench/damage_fuzz.py --artefact $$a --trials 100000 || exit 1; done
 
 bench: $(STAMP)
 	$(BIN)/python bench/run_bench.py

@@ -3,6 +3,7 @@ fresh seeds, the cheapest path kept, its progress recorded."""
 
 from __future__ import annotations
 
+import time
 from itertools import pairwise
 
 import numpy as np
@@ -16,6 +17,8 @@ from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.termination import TerminationCondition
 
 START, GOAL = [-np.pi, 0.0], [0.0, 0.0]
+LIMIT = 1.0  # a time budget (the tests of it assert durations, with a wide margin above)
+MARGIN = 60.0
 
 
 def _anytime(model, seed, iterations=2000):
@@ -77,3 +80,41 @@ def test_the_anytime_record_counts_every_iteration(paper_model):
                       time_limit=None, max_iterations=1500)
     record = p.extra["anytime"]
     assert record["solves"] > 1 and p.iterations < record["iterations"] <= 1500
+
+
+def test_the_anytime_scheme_spends_a_time_budget(paper_model):
+    """With a time limit (no iteration limit) the restarts and shortcuts run until the limit;
+    the first solution is the plain solve's (same seed), later ones only improve it."""
+    cfg = paper_model.config.model_copy(update={"plan": paper_model.config.plan.model_copy(
+        update={"anytime": True})})
+    first = pipeline.plan(paper_model, START, GOAL, 0.1, 3, time_limit=None,
+                          max_iterations=3000)
+    wall = time.perf_counter()
+    p = pipeline.plan(paper_model, START, GOAL, 0.1, 3, config=cfg, time_limit=LIMIT,
+                      max_iterations=None)
+    wall = time.perf_counter() - wall
+    a = p.extra["anytime"]
+    assert LIMIT <= wall < LIMIT + MARGIN
+    assert p.solved and a["solves"] > 1 and a["scheme"] == "restarts+shortcut"
+    costs = [c for _, c in a["progress"]]
+    assert costs[0] == pytest.approx(first.path_cost, rel=1e-12)
+    assert all(b < c for c, b in pairwise(costs)) and p.path_cost == costs[-1]
+    r = resimulate(paper_model.system, p)
+    assert r["max_gap"] < 1e-9 and r["path_cost"] == pytest.approx(p.path_cost, rel=1e-9)
+
+
+def test_the_restart_baseline_spends_a_cpu_budget(pendulum):
+    problem = PlanningProblem.create(pendulum, START, GOAL, 0.3, u_max=2.0)
+    peer = planners.make("random-rrt", time_weight=1.0)
+
+    def solve(termination, seed):
+        return peer.solve(problem, termination, seed)
+
+    cpu = time.process_time()
+    p = solve_with_restarts(solve, TerminationCondition(time_limit=None, cpu_time_limit=LIMIT),
+                            seed=1)
+    cpu = time.process_time() - cpu
+    a = p.extra["anytime"]
+    assert LIMIT <= cpu < LIMIT + MARGIN
+    assert p.solved and a["scheme"] == "restarts" and a["solves"] > 1
+    assert p.path_cost == min(c for _, c in a["progress"])

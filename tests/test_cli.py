@@ -16,8 +16,11 @@ from rrtcolearn.cli import app
 from rrtcolearn.data.store import load_dataset
 from rrtcolearn.pipeline import read_plan
 
+# plans stop on the iteration budget, deterministic per seed; a setting cannot say "no time
+# limit", so the time limit is a backstop no test's budget comes near
+BACKSTOP = ["--set", "plan.time_limit=600"]
 TINY = ["--set", "generate.n_simulations=3000", "--set", "clean.k_max=500",
-        "--set", "plan.max_iterations=400", "--set", "plan.time_limit=20"]
+        "--set", "plan.max_iterations=400", *BACKSTOP]
 
 
 def invoke(*args: str):
@@ -222,22 +225,29 @@ def test_error_messages_stay_one_literal_line(tmp_path):
     assert "[/]x" in invoke("generate", "--config", "[/]x").output
 
 
-@pytest.mark.parametrize("name", ["pendulum", "double_integrator", "cartpole", "acrobot"])
-def test_run_works_for_every_shipped_system(name, tmp_path):
+@pytest.mark.parametrize("name, query", [
+    ("pendulum", []), ("double_integrator", []), ("acrobot", []),
+    # the full swing-up takes about 20 s of CPU with a 100 000-simulation network (README):
+    # from 0.54 rad short of upright a 2 000-simulation model reaches the goal
+    ("cartpole", ["--set", "plan.start=[0.0, 2.6, 0.0, 0.0]"])])
+def test_run_works_for_every_shipped_system(name, query, tmp_path):
     """`rrtcolearn run --system NAME` writes the same artefacts for every shipped system, with
-    the system's recommended configuration under the user's settings."""
+    the system's recommended configuration under the user's settings, and solves its query
+    within an iteration budget (seed 1: pendulum in 755 iterations, double integrator 184,
+    acrobot 545, cart-pole 210)."""
     out = tmp_path / name
     result = invoke("run", "--system", name, "--out", str(out), "--seed", "1",
                     "--set", "generate.n_simulations=2000", "--set", "clean.k_max=300",
-                    "--set", "plan.max_iterations=300", "--set", "plan.time_limit=20",
-                    "--set", "learn.mlp_max_iter=5")
+                    "--set", "plan.max_iterations=2000", *BACKSTOP,
+                    "--set", "learn.mlp_max_iter=5", *query)
     assert result.exit_code == 0, result.output
     for artefact in ("config.toml", "dataset.npz", "cleaned.npz", "model.json", "plan.json",
                      "plan.png", "summary.json"):
         assert (out / artefact).is_file(), artefact
     plan = json.loads((out / "plan.json").read_text())
     assert plan["system"] == name
-    assert plan["status"] in ("exact", "approximate", "timeout")
+    assert plan["solved"] and plan["status"] == "exact" and plan["iterations"] < 2000
+    assert plan["final_goal_distance"] <= plan["goal_tolerance"]
     cfg = (out / "config.toml").read_text()
     assert "n_simulations = 2000" in cfg  # the user's setting wins over the recommended one
     if name == "cartpole":  # ... which applies where the user is silent
@@ -457,3 +467,111 @@ def test_obstacle_and_number_settings_as_written(setting, contains, tmp_path):
     suggestion every other section gets."""
     result = invoke("generate", "--out", str(tmp_path / "x"), "--set", setting)
     assert_one_line_error(result, contains=contains)
+
+
+# --------------------------------------------------------------------------- options and listings
+
+
+def test_version_is_the_projects():
+    import tomllib
+
+    version = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())[
+        "project"]["version"]
+    for argv in (["--version"], ["--version", "plan", "--bogus"]):  # eager: before the rest
+        result = invoke(*argv)
+        assert result.exit_code == 0 and result.output == f"rrtcolearn {version}\n"
+
+
+def test_systems_lists_every_registered_system_one_per_line():
+    from rrtcolearn.systems import list_systems, make
+
+    result = invoke("systems")
+    assert result.exit_code == 0, result.output
+    # one line each, however long the description (no wrapping at a console width)
+    assert result.output.splitlines() == [f"{n}: {make(n).description}" for n in list_systems()]
+    assert {"pendulum", "double_integrator", "cartpole", "acrobot"} <= set(list_systems())
+
+
+def test_inspect_lists_every_artefact_with_its_size_and_digest(tiny_run):
+    import hashlib
+
+    result = invoke("inspect", str(tiny_run))
+    assert result.exit_code == 0, result.output
+    rows = {line.split()[0]: line.split()[1:] for line in result.output.splitlines()}
+    files = sorted(p for p in tiny_run.iterdir() if p.is_file() and not p.name.startswith("."))
+    assert sorted(rows) == [p.name for p in files]
+    for p in files:
+        kind, size, sha = rows[p.name]
+        assert int(size) == p.stat().st_size and len(sha) == 64
+        assert kind == ("functions" if p.name == "functions.npz" else {
+            ".npz": "dataset", ".json": "json", ".toml": "toml"}.get(p.suffix, "file"))
+        if kind == "file":  # anything else: the digest of its bytes
+            assert sha == hashlib.sha256(p.read_bytes()).hexdigest()
+    result = invoke("inspect", str(tiny_run / "nowhere"))
+    assert_one_line_error(result, contains="not found")
+
+
+def test_time_limit_option_stops_the_plan(tiny_run, tmp_path):
+    """--time-limit is the planner's wall-clock limit (a test of the limit: generous margin)."""
+    out = tmp_path / "p.json"
+    result = invoke("plan", "--model", str(tiny_run), "--goal-tolerance", "1e-9",
+                    "--time-limit", "0.5", "--max-iterations", "100000000", "--out", str(out))
+    assert result.exit_code == 0, result.output
+    plan = read_plan(out)
+    assert plan["config"]["plan"]["time_limit"] == 0.5
+    assert not plan["solved"] and plan["status"] == "approximate"
+    assert 0.5 <= plan["planning_time_s"] < 60 and plan["iterations"] < 100_000_000
+
+
+def test_first_solution_overrides_an_anytime_setting(tiny_run, tmp_path):
+    query = ["plan", "--model", str(tiny_run), "--seed", "4", "--max-iterations", "1500",
+             "--set", "plan.anytime=true"]
+    assert invoke(*query, "--first-solution", "--out", str(tmp_path / "a.json")).exit_code == 0
+    assert invoke(*query[:-2], "--out", str(tmp_path / "b.json")).exit_code == 0
+    assert invoke(*query, "--out", str(tmp_path / "c.json")).exit_code == 0
+    first, plain, anytime = (read_plan(tmp_path / f"{n}.json") for n in "abc")
+    assert first["config"]["plan"]["anytime"] is False and "anytime" not in first
+    assert first["path"] == plain["path"] and first["solved"]
+    assert anytime["config"]["plan"]["anytime"] is True and anytime["anytime"]["solves"] >= 1
+
+
+def test_offline_budget_chooses_the_simulations(tmp_path):
+    """--offline-budget runs the convergence test; a budget smaller than one stage stops it
+    after the first (a quarter of the derived default), and the choice says why."""
+    from rrtcolearn.config import read_toml
+
+    out = tmp_path / "b"
+    result = invoke("generate", "--out", str(out), "--offline-budget", "0.001",
+                    "--set", "generate.chunk_size=500", "--set", "generate.max_cost=2.0")
+    assert result.exit_code == 0, result.output
+    cfg = read_toml(out / "config.toml")
+    n = cfg["generate"]["n_simulations"]
+    assert n == 10_000  # the pendulum's derived 40 000 / 4
+    reason = cfg["derived"]["generate.n_simulations"]
+    assert "offline budget 0.001 s CPU" in str(reason), reason
+    assert load_dataset(out / "dataset.npz")[1]["config"]["generate"]["n_simulations"] == n
+
+
+def _generated_digest(tmp_path: Path, name: str, *options: str) -> str:
+    out = tmp_path / name
+    result = invoke("generate", "--out", str(out), "--seed", "2", "--set",
+                    "generate.n_simulations=400", "--set", "generate.chunk_size=100", *options)
+    assert result.exit_code == 0, result.output
+    return load_dataset(out / "dataset.npz")[1]["sha256"]
+
+
+def test_dask_options_give_the_serial_dataset(tmp_path):
+    """--dask-local N starts a local cluster; --scheduler ADDRESS uses a running one; the data
+    are the serial run's either way. Both at once, or no workers, is a one-line error."""
+    import distributed
+
+    serial = _generated_digest(tmp_path, "serial")
+    assert _generated_digest(tmp_path, "local", "--dask-local", "1") == serial
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:
+        assert _generated_digest(tmp_path, "remote", "--scheduler",
+                                 cluster.scheduler_address) == serial
+    for bad, message in ((["--dask-local", "2", "--scheduler", "tcp://x:1"], "either"),
+                         (["--dask-local", "0"], "at least 1")):
+        result = invoke("generate", "--out", str(tmp_path / "x"), *bad)
+        assert_one_line_error(result, contains=message)

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
+import casadi  # noqa: F401  (an extra: `make test` installs it; missing, the suite fails)
 import numpy as np
 import pytest
-
-pytest.importorskip("casadi")
 
 from rrtcolearn.baselines.collocation import (
     CollocationResult,

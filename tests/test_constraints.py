@@ -12,6 +12,9 @@ from rrtcolearn.pipeline import FittedModel, fit_functions, plan
 from rrtcolearn.planning.problem import ProblemError
 
 BLOCK = {"type": "box", "low": [-2.0, 0.3], "high": [-1.2, 2.5]}
+# plans stop at their first solution or this many iterations: deterministic per seed, unlike a
+# time limit, which a loaded machine reaches sooner
+BUDGET = 20_000
 
 
 def resimulated_states(d: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -62,7 +65,8 @@ def test_with_w_1_no_segment_leaves_rest_below_unit_torque(pendulum):
 def test_torque_limited_swing_up(limited):
     u_max, model = limited
     for seed in range(3):
-        p = plan(model, [-np.pi, 0], [0, 0], 0.1, seed=seed, time_limit=10)
+        p = plan(model, [-np.pi, 0], [0, 0], 0.1, seed=seed, time_limit=None,
+                 max_iterations=BUDGET)
         assert p.solved
         d = p.to_dict()
         assert d["u_max"] == u_max
@@ -75,7 +79,7 @@ def test_torque_limited_swing_up(limited):
 def test_obstacle_path_stays_free(paper_model):
     for seed in range(3):
         p = plan(paper_model, [-np.pi, 0], [0, 0], 0.1, seed=seed, obstacles=[BLOCK],
-                 time_limit=20)
+                 time_limit=None, max_iterations=BUDGET)
         assert p.solved
         d = p.to_dict()
         check_plan_file(d)
@@ -91,7 +95,8 @@ def test_user_validity_callable(paper_model):
     def is_valid(states):
         return states[:, 1] < 2.0  # never faster than 2 rad/s
 
-    p = plan(paper_model, [-np.pi, 0], [0, 0], 0.1, seed=0, is_valid=is_valid, time_limit=20)
+    p = plan(paper_model, [-np.pi, 0], [0, 0], 0.1, seed=0, is_valid=is_valid,
+             time_limit=None, max_iterations=BUDGET)
     assert p.solved
     x, _ = resimulated_states(p.to_dict())
     assert x[:, 1].max() < 2.0

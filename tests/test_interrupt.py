@@ -57,7 +57,19 @@ def kill_after(argv: list[str], delay: float, sig: int = signal.SIGKILL) -> int:
     return proc.returncode
 
 
-@pytest.mark.parametrize("delay", sorted(random.Random(7).uniform(0.2, 6.0) for _ in range(4)))
+def wait_for(event, proc: subprocess.Popen, poll: float = 0.02) -> None:
+    """Return once ``event()`` is true; fail if ``proc`` exits first (a guard against a hang,
+    not a timing: the wait ends on the event)."""
+    while not event():
+        assert proc.poll() is None, proc.communicate()[1].decode()
+        time.sleep(poll)
+
+
+_RNG = random.Random(7)  # one generator: four different seeded points (a generator made per
+# draw gave the same delay four times)
+
+
+@pytest.mark.parametrize("delay", sorted(_RNG.uniform(0.2, 6.0) for _ in range(4)))
 def test_run_killed_at_random_points(tmp_path, delay):
     out = tmp_path / "run"
     kill_after(["run", "--out", str(out), *SMALL], delay)
@@ -74,9 +86,12 @@ def test_run_killed_at_random_points(tmp_path, delay):
 def test_interrupt_is_one_line_and_clean(tmp_path, sig, code):
     out = tmp_path / "run"
     proc = subprocess.Popen([EXE, "generate", "--out", str(out), "--set",
-                             "generate.n_simulations=400000"],
+                             "generate.n_simulations=400000", "--set",
+                             "generate.chunk_size=1000"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    time.sleep(3.0)
+    # signal once the work is under way (its first finished chunk on disk), however long
+    # starting up takes on a loaded machine; 400 chunks leave it far from done
+    wait_for(lambda: any((out / "shards" / "generate").glob("chunk-*.npz")), proc)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == code, err.decode()

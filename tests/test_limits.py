@@ -119,11 +119,11 @@ def test_saturated_pendulum_plans_within_the_limit(saturated_pendulum, tmp_path)
 def test_saturated_model_refuses_another_limit(saturated_pendulum):
     with pytest.raises(ConfigError, match="train a model"):
         pipeline.plan(saturated_pendulum, [-np.pi, 0.0], [0.0, 0.0], 0.1, u_max=2.0,
-                      max_iterations=10)
+                      time_limit=None, max_iterations=10)
     # the same limit, or none given, plans with the model's own
     for u_max in (U_MAX, None):
         p = pipeline.plan(saturated_pendulum, [-np.pi, 0.0], [0.0, 0.0], 0.1, u_max=u_max,
-                          max_iterations=10)
+                          time_limit=None, max_iterations=10)
         assert p.to_dict()["u_max"] == U_MAX
 
 
@@ -138,14 +138,16 @@ def test_truncation_at_w1_stalls_with_a_diagnosis(tmp_path):
     pipeline.clean(cfg, tmp_path)
     model = pipeline.fit(cfg, tmp_path)
     assert not model.system.input_limited
-    p = pipeline.plan(model, [-np.pi, 0.0], [0.0, 0.0], 0.1, seed=0, time_limit=60.0)
+    p = pipeline.plan(model, [-np.pi, 0.0], [0.0, 0.0], 0.1, seed=0, time_limit=None,
+                      max_iterations=30_000)
     assert not p.solved and p.extra["stalled"] and p.iterations == 2000
     assert p.nodes == 1 and p.to_dict()["limit_mode"] == "truncate"
     assert "invalid query" in p.extra["diagnosis"] and "saturate" in p.extra["diagnosis"]
     assert "no progress toward the goal" in p.extra["diagnosis"]  # the tree never left the start
     assert sum(p.extra["outcomes"].values()) == 2000
     # the default planner switches random-control edges on when the learned steering stalls
-    q = pipeline.plan(model, [-np.pi, 0.0], [0.0, 0.0], 0.1, seed=0, time_limit=60.0,
+    q = pipeline.plan(model, [-np.pi, 0.0], [0.0, 0.0], 0.1, seed=0, time_limit=None,
+                      max_iterations=30_000,
                       config=cfg.model_copy(update={"plan": cfg.plan.model_copy(
                           update={"control_edges": None})}))
     assert q.solved and q.extra["connections_switched_on"]["controls"] == CONTROLS_AFTER

@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+import sklearn  # noqa: F401  (an extra: `make test` installs it; missing, the suite fails)
 
 from rrtcolearn.learn.mlp import NeuralRegressor
 from rrtcolearn.systems.double_integrator import optimal_cost
@@ -30,7 +31,6 @@ def small_net(**kw) -> NeuralRegressor:
 
 @pytest.fixture(scope="module")
 def cost_model() -> tuple[NeuralRegressor, np.ndarray, np.ndarray]:
-    pytest.importorskip("sklearn")
     X, y = double_integrator_pairs(4000, seed=1)
     return NeuralRegressor(hidden=(32, 32), max_iter=300, log_target=True).fit(X, y), X, y
 
@@ -46,7 +46,6 @@ def test_fits_the_double_integrator_cost_to_go(cost_model):
 
 
 def test_circular_targets_near_the_branch_cut_stay_in_range():
-    pytest.importorskip("sklearn")
     rng = np.random.default_rng(3)
     X = rng.uniform(-1, 1, size=(3000, 2))
     # phi crosses the cut at x0 = 0: just below HIGH for x0 < 0, just above LOW for x0 > 0
@@ -84,7 +83,6 @@ def test_an_angle_rounding_up_to_high_wraps_to_low():
 
 
 def test_fit_is_deterministic_and_the_seed_matters():
-    pytest.importorskip("sklearn")
     X, y = double_integrator_pairs(1500, seed=4)
     Xt, _ = double_integrator_pairs(300, seed=5)
     a = small_net(seed=7, max_samples=1000).fit(X, y).predict(Xt)
@@ -111,7 +109,6 @@ def test_array_round_trip_is_bit_identical(cost_model, tmp_path):
 
 
 def test_multi_output_round_trip_keeps_the_layout():
-    pytest.importorskip("sklearn")
     X, y = double_integrator_pairs(600, seed=6)
     Y = np.stack([y, LOW + np.mod(X[:, 0], HIGH - LOW)], axis=1)
     model = small_net(max_samples=None, circular=(False, True), low=(0.0, LOW),
@@ -169,7 +166,6 @@ def test_from_arrays_rejects_damaged_or_foreign_sets(cost_model, how):
 
 
 def test_fit_rejects_bad_targets():
-    pytest.importorskip("sklearn")
     X = np.random.default_rng(0).uniform(size=(50, 2))
     with pytest.raises(ValueError, match="finite"):
         small_net().fit(X, np.where(np.arange(50) == 3, np.nan, 1.0))

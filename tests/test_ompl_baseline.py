@@ -6,6 +6,7 @@ creates an OMPL random generator; results are cached per module.
 """
 
 import numpy as np
+import ompl  # noqa: F401  (an extra: `make test` installs it; missing, the suite fails)
 import pytest
 
 from rrtcolearn import planners
@@ -15,13 +16,17 @@ from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan
 
-pytest.importorskip("ompl")  # the module above imports ompl lazily, so this import works
-
 START = [-np.pi, 0.0]
 GOAL = np.array([0.0, 0.0])
 TOL = 0.1
 BOX = {"type": "box", "low": [-2.0, 0.3], "high": [-1.2, 2.5]}
 _cache: dict = {}
+# OMPL's bindings count no iterations, so its runs cannot stop on an iteration budget: they
+# stop at their first exact solution (0.01-0.14 s of CPU for these seeds; EST's seed 1 3.3 s),
+# with a CPU-time backstop (in the forked child, so other processes' load does not shorten it)
+# far beyond that
+def backstop() -> TerminationCondition:
+    return TerminationCondition(time_limit=None, cpu_time_limit=60.0)
 
 
 def problem(pendulum, u_max: float, box: bool = False) -> PlanningProblem:
@@ -34,7 +39,7 @@ def run(pendulum, planner: str, u_max: float, seed: int, box: bool = False) -> P
     key = (planner, u_max, seed, box)
     if key not in _cache:
         _cache[key] = planners.make(f"ompl-{planner}").solve(
-            problem(pendulum, u_max, box), TerminationCondition(10.0), seed)
+            problem(pendulum, u_max, box), backstop(), seed)
     return _cache[key]
 
 
@@ -63,7 +68,7 @@ def test_rrt_solves_swing_up(pendulum, u_max, seed):
     r = run(pendulum, "RRT", u_max, seed)
     assert r.extra["planner"] == "ompl-RRT"
     assert r.solved and r.status == "exact" and r.extra["ompl_claimed_exact"]
-    assert r.planning_time_s < 10.0 and 0 < r.planning_cpu_s < 10.0
+    assert r.planning_cpu_s > 0
     assert r.nodes > 1 and r.nodes == r.graph_states
     assert r.extra["seeded_before_first_rng"]
     m = check_path(pendulum, r, u_max)
@@ -74,7 +79,7 @@ def test_rrt_solves_swing_up(pendulum, u_max, seed):
 
 def test_same_seed_same_result(pendulum):
     a = run(pendulum, "RRT", 1.0, 0)
-    b = planners.make("ompl-RRT").solve(problem(pendulum, 1.0), TerminationCondition(10.0), 0)
+    b = planners.make("ompl-RRT").solve(problem(pendulum, 1.0), backstop(), 0)
     np.testing.assert_array_equal(a.tree.controls[: a.nodes], b.tree.controls[: b.nodes])
     np.testing.assert_array_equal([e["duration"] for e in a.edges()],
                                   [e["duration"] for e in b.edges()])
@@ -99,11 +104,10 @@ def test_box_obstacle_respected(pendulum):
 def test_other_planners_return_valid_results(pendulum, planner):
     r = run(pendulum, planner, 2.0, 0)
     assert isinstance(r, Plan) and r.extra["planner"] == f"ompl-{planner}"
-    assert r.status in ("exact", "approximate", "timeout")
-    assert r.iterations == 0 and r.nodes >= 1 and r.planning_cpu_s > 0
-    if r.edges():
-        m = check_path(pendulum, r, 2.0)
-        assert r.solved == m["reaches_goal"]
+    assert r.solved and r.status == "exact" and r.extra["ompl_claimed_exact"]
+    assert r.iterations == 0 and r.nodes > 1 and r.planning_cpu_s > 0
+    m = check_path(pendulum, r, 2.0)
+    assert m["reaches_goal"] and m["final_goal_distance"] <= TOL and m["valid"]
 
 
 def test_four_state_system_with_goal_weights():
@@ -114,7 +118,7 @@ def test_four_state_system_with_goal_weights():
     cartpole = make("cartpole")
     prob = PlanningProblem.create(cartpole, [0.0, 0.0, 0.0, 0.0], [0.0, 0.5, 0.0, 0.0], 0.3,
                                   u_max=100.0, goal_weights=[0.0, 1.0, 0.3, 0.3])
-    r = planners.make("ompl-RRT").solve(prob, TerminationCondition(20.0), 3)
+    r = planners.make("ompl-RRT").solve(prob, backstop(), 3)
     assert r.solved, r.extra
     m = replay(prob, r)
     assert m["reaches_goal"] and m["max_abs_u"] <= 100.0

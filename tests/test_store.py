@@ -124,3 +124,69 @@ def test_write_errors_name_the_users_path(tmp_path, monkeypatch):
     with pytest.raises(PermissionError) as info:
         atomic_write_bytes(target, b"x")
     assert info.value.filename == str(target) and ".tmp" not in str(info.value)
+
+
+def _member(raw: bytes, name: str) -> zipfile.ZipInfo:
+    with zipfile.ZipFile(io.BytesIO(raw)) as z:
+        return z.getinfo(name)
+
+
+def _central_entry(raw: bytes, name: str) -> int:
+    """Offset of ``name``'s central-directory record (signature PK\\x01\\x02)."""
+    at = raw.find(b"PK\x01\x02")
+    while at >= 0:
+        n = int.from_bytes(raw[at + 28:at + 30], "little")
+        if raw[at + 46:at + 46 + n] == name.encode():
+            return at
+        at = raw.find(b"PK\x01\x02", at + 4)
+    raise AssertionError(f"{name} has no central-directory record")
+
+
+def _refused_in_one_line(raw: bytes, path) -> str:
+    path.write_bytes(raw)
+    with pytest.raises(ArtefactError) as info:
+        load_dataset(path)
+    assert "\n" not in str(info.value)
+    return str(info.value)
+
+
+@pytest.mark.parametrize("member", ["sim_params.npy", "point_x1.npy", "__meta__.npy"])
+def test_a_flag_bit_that_says_encrypted_is_an_artefact_error(small_dataset, tmp_path, member):
+    """Bit 0 of a member's general-purpose flags (central directory, offset 8) marks it
+    encrypted: zipfile raised RuntimeError "File 'sim_params.npy' is encrypted, password
+    required for extraction", which escaped the loader as a traceback (issue 34; the fuzz
+    test found it once in thousands of runs)."""
+    path = tmp_path / "d.npz"
+    save_dataset(path, small_dataset.take(slice(0, 200)), {"system": "pendulum"})
+    raw = bytearray(path.read_bytes())
+    at = _central_entry(bytes(raw), member)
+    raw[at + 8] ^= 0x01
+    message = _refused_in_one_line(bytes(raw), tmp_path / "damaged.npz")
+    assert "truncated or corrupt" in message and "encrypted" in message
+
+
+def test_a_damaged_npy_header_is_an_artefact_error(small_dataset, tmp_path):
+    """A member too long for one read is parsed (its .npy header, by numpy through tokenize
+    and ast) before zipfile reaches its CRC: an unclosed bracket raised tokenize.TokenError,
+    which escaped the loader (found by bench/damage_fuzz.py: a flip in point_x1.npy)."""
+    path = tmp_path / "d.npz"
+    save_dataset(path, small_dataset, {"system": "pendulum"})
+    raw = path.read_bytes()
+    member = _member(raw, "point_x1.npy")
+    assert member.file_size > 4096  # longer than zipfile's first read: the header comes first
+    shape = raw.find(b"'shape': (", member.header_offset)
+    close = raw.find(b")", shape)
+    for at, byte in ((close, b" "), (raw.find(b"{", member.header_offset), b"}")):
+        damaged = raw[:at] + byte + raw[at + 1:]
+        message = _refused_in_one_line(damaged, tmp_path / "damaged.npz")
+        assert "truncated or corrupt" in message
+
+
+def test_a_header_that_is_not_an_npy_header_is_not_called_pickled(small_dataset, tmp_path):
+    """numpy's ValueError for a header it cannot parse is damage, not a pickle refused."""
+    path = tmp_path / "d.npz"
+    save_dataset(path, small_dataset, {"system": "pendulum"})
+    raw = path.read_bytes()
+    at = raw.find(b"{'descr'", _member(raw, "point_x1.npy").header_offset)
+    message = _refused_in_one_line(raw[:at] + b"[" + raw[at + 1:], tmp_path / "damaged.npz")
+    assert "truncated or corrupt" in message and "unpickling" not in message

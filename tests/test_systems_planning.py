@@ -39,6 +39,29 @@ def di_model(tmp_path_factory):
     return pipeline.fit(cfg, run)
 
 
+def di_cost_lower_bound(x0, x1, w: float) -> float:
+    """The least cost w T + int u^2/2 of any double-integrator path from x0 to x1, by the
+    textbook minimum-energy control for a fixed duration T (int u^2 dt = 12 e^2 / T^3 +
+    dv^2 / T with e = dq - T (v0 + v1) / 2, dv = v1 - v0), minimised over T on a fine grid
+    (an under-estimate of the minimum by less than the grid's spacing times w)."""
+    dq, v0, v1 = x1[0] - x0[0], x0[1], x1[1]
+    T = np.linspace(1e-3, 20.0, 200_001)
+    e, dv = dq - T * (v0 + v1) / 2, v1 - v0
+    return float(np.min(w * T + 0.5 * (12 * e**2 / T**3 + dv**2 / T))) - w * 1e-4
+
+
+def test_the_lower_bound_is_attained_by_the_closed_form():
+    """The bound's formula against the package's closed-form optimum at random pairs."""
+    from rrtcolearn.systems.double_integrator import optimal_cost
+
+    rng = np.random.default_rng(0)
+    x0, x1 = rng.uniform(-1, 1, (20, 2)), rng.uniform(-1, 1, (20, 2))
+    exact = optimal_cost(x0, x1, 1.0)
+    for a, b, c in zip(x0, x1, exact, strict=True):
+        if np.isfinite(c):
+            assert di_cost_lower_bound(a, b, 1.0) == pytest.approx(c, abs=2e-4)
+
+
 @pytest.mark.parametrize("options", [
     [],  # derived settings, goal connections switched on by the planner when it stalls
     ["plan.goal_connect=false", "plan.goal_funnel=0"],  # no goal connection
@@ -64,6 +87,8 @@ def test_double_integrator_plans_resimulate(di_model, options):
         total += e["cost"]
     assert d["path_cost"] == pytest.approx(total)
     assert np.linalg.norm(np.array(d["path"][-1]["to"]) - [1.0, 0.0]) <= 0.1
+    # no path is cheaper than the optimal one between its ends (independent of the planner)
+    assert d["path_cost"] >= di_cost_lower_bound(d["start"], d["path"][-1]["to"], w)
     if "plan.goal_funnel=0" in options and "plan.goal_connect=false" in options:
         assert "goal_connected" not in d
     if "plan.goal_connect=true" in options:

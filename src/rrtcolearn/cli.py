@@ -379,8 +379,8 @@ def systems() -> None:
     """List the registered systems."""
     from rrtcolearn.systems import list_systems, make
 
-    for name in list_systems():
-        out_console.print(f"{name}: {make(name).description}")
+    for name in list_systems():  # plain lines: rich would wrap them at its console width
+        typer.echo(f"{name}: {make(name).description}")
 
 
 @app.command()

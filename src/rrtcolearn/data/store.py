@@ -18,7 +18,6 @@ import json
 import os
 import shutil
 import uuid
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -73,8 +72,10 @@ def read_json(path: str | os.PathLike, what: str = "file") -> Any:
         raise ArtefactError(f"{what} not found: {path}")
     try:
         return json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ArtefactError(f"{what} {path} is not valid JSON ({exc})") from None
+    # ValueError: JSONDecodeError, UnicodeDecodeError and an integer too long to convert;
+    # RecursionError: brackets nested deeper than the parser's stack
+    except (ValueError, RecursionError) as exc:
+        raise ArtefactError(f"{what} {path} is not valid JSON ({_one_line(exc)})") from None
 
 
 def json_checksum(content: dict) -> str:
@@ -133,6 +134,11 @@ def save_arrays(path: str | os.PathLike, fmt: str, arrays: dict[str, np.ndarray]
     return header["sha256"]
 
 
+def _one_line(exc: BaseException) -> str:
+    """An exception's message on one line (a parser's may quote the damaged bytes)."""
+    return " ".join(str(exc).split())
+
+
 def load_arrays(path: str | os.PathLike, fmt: str) -> tuple[dict[str, np.ndarray], dict]:
     """Read a file written by `save_arrays`, refusing anything that does not check out."""
     path = Path(path)
@@ -146,14 +152,17 @@ def load_arrays(path: str | os.PathLike, fmt: str) -> tuple[dict[str, np.ndarray
     try:
         with np.load(path, allow_pickle=False) as npz:
             arrays = {k: npz[k] for k in npz.files}
-    # a damaged zip header can also name a zip version or compression method that zipfile
-    # does not implement (NotImplementedError)
-    except (zipfile.BadZipFile, EOFError, OSError, KeyError, NotImplementedError) as exc:
+    # Damaged bytes reach several parsers, each with its own exceptions: zipfile (BadZipFile;
+    # RuntimeError for a flag bit that says "encrypted"; NotImplementedError for a zip version
+    # or compression method it lacks), the decompressors (zlib.error, EOFError, OSError) and
+    # numpy's .npy header parser (tokenize.TokenError, SyntaxError, ValueError, KeyError).
+    # Naming them missed some (issue 34); whichever it is, the file cannot be read.
+    except Exception as exc:
+        if isinstance(exc, ValueError) and "allow_pickle" in str(exc):  # numpy's own refusal
+            raise ArtefactError(f"{path} holds data that would need unpickling, refused "
+                                f"({_one_line(exc)})") from None
         raise ArtefactError(f"{path} is not a readable {fmt} file (truncated or corrupt: "
-                            f"{exc})") from None
-    except ValueError as exc:  # object arrays need pickle, which is refused
-        raise ArtefactError(f"{path} holds data that would need unpickling, refused ({exc})"
-                            ) from None
+                            f"{type(exc).__name__}: {_one_line(exc)})") from None
     if _META not in arrays:
         raise ArtefactError(f"{path} has no header: not an rrtcolearn {fmt} file")
     try:
