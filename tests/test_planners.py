@@ -22,6 +22,10 @@ EASY = {
                           {"type": "box", "low": [-0.4, -2.0], "high": [0.4, -0.6]}),
 }
 
+# An iteration budget decides every planner that counts iterations (the same plan on any
+# machine); the time limit is only a backstop for OMPL's, which stop at their first solution.
+BUDGET = {"max_iterations": 20_000, "time_limit": 300.0}
+
 
 @pytest.fixture(scope="module")
 def models(paper_model, tmp_path_factory):
@@ -75,7 +79,7 @@ def test_planner_contract(name, system_name, request):
         with pytest.raises(ValueError, match="pendulum"):
             planners.make("direct", model=object()).solve(problem, TerminationCondition(1.0))
         return
-    plan = planners.check_planner(planner, problem, seed=1)
+    plan = planners.check_planner(planner, problem, seed=1, **BUDGET)
     assert plan.extra["planner"] == name
     # the obstacle and the state constraint are respected along every stored edge
     states = np.concatenate([plan.tree.trajectories[i] for i in plan.path_nodes])
@@ -90,7 +94,7 @@ def test_a_random_control_peer_needs_an_input_bound(pendulum):
         planner.solve(problem, TerminationCondition(1.0))
     bounded = planners.make("random-rrt", u_max=2.0)
     assert bounded.supports(problem) is None
-    plan = planners.check_planner(bounded, problem)
+    plan = planners.check_planner(bounded, problem, **BUDGET)
     assert plan.max_abs_u <= 2.0
 
 

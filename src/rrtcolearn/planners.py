@@ -117,7 +117,8 @@ class PlannerCheckError(AssertionError):
 
 
 def check_planner(planner: Planner, problem: PlanningProblem, *, time_limit: float = 30.0,
-                  seed: int = 0, require_solution: bool = True) -> Plan:
+                  max_iterations: int | None = None, seed: int = 0,
+                  require_solution: bool = True) -> Plan:
     """Check ``planner`` against the contract on ``problem`` (OMPL's PlannerTest, scikit-learn's
     check_estimator); returns its plan, raises `PlannerCheckError` naming the broken clause.
 
@@ -126,6 +127,8 @@ def check_planner(planner: Planner, problem: PlanningProblem, *, time_limit: flo
     states in the constraints and out of obstacles, ends where the plan says, costs what it
     says and reaches the goal exactly when the plan claims so; every edge re-simulated from
     its stored start ends at its stored end; and the same seed gives the same plan.
+    ``max_iterations`` makes the check independent of the machine's speed for planners that
+    count iterations; ``time_limit`` stays as the backstop for those that do not (OMPL's).
     """
     from rrtcolearn.evaluate import replay, resimulate
 
@@ -136,7 +139,7 @@ def check_planner(planner: Planner, problem: PlanningProblem, *, time_limit: flo
 
     reason = planner.supports(problem)
     require(reason is None, f"does not support the problem: {reason}")
-    plan = planner.solve(problem, TerminationCondition(time_limit), seed)
+    plan = planner.solve(problem, TerminationCondition(time_limit, max_iterations), seed)
     require(isinstance(plan, Plan), f"solve returned a {type(plan).__name__}, not a Plan")
     require(plan.solved or not require_solution, f"no solution ({plan.status})")
     check = replay(problem, plan)
@@ -153,7 +156,7 @@ def check_planner(planner: Planner, problem: PlanningProblem, *, time_limit: flo
                 f"{check['final_goal_distance']}")
     gaps = resimulate(problem.system, plan)
     require(gaps["max_gap"] <= 1e-6, f"an edge ends {gaps['max_gap']} from its stored end")
-    again = planner.solve(problem, TerminationCondition(time_limit), seed)
+    again = planner.solve(problem, TerminationCondition(time_limit, max_iterations), seed)
     same = again.nodes == plan.nodes and again.path_nodes == plan.path_nodes and all(
         a == b for a, b in zip(again.edges(), plan.edges(), strict=True))
     require(same, f"seed {seed} gave two different plans")
