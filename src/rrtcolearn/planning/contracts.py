@@ -12,6 +12,7 @@ docs/architecture.md draws the loop around them; `planning.schedule` says when e
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple, Protocol
 
@@ -82,7 +83,7 @@ class GrowingTree:
     plain: NodeIndex
     wrapped: NodeIndex
     shifts: np.ndarray
-    wrap_shift: object  # the system's wrap_shift: states (N, n) -> shifts (N, n)
+    wrap_shift: Callable[[np.ndarray], np.ndarray]  # the system's: states -> shifts (N, n)
     dt: float
 
     @property

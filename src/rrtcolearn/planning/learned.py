@@ -43,7 +43,6 @@ def _truncnorm_vec(rng: np.random.Generator, mean: np.ndarray, sigma: float, lo:
     return out
 
 
-
 def goal_query(x0: np.ndarray, shift: np.ndarray, offset: np.ndarray) -> np.ndarray:
     """The learning query (1, 2n) from ``x0`` to the goal: both ends shifted by whole turns
     (``shift``) into the box, the goal as ``x0 - offset`` (angles the short way)."""

@@ -13,6 +13,7 @@ import numpy as np
 from rrtcolearn.integrate import rollout_draws
 from rrtcolearn.planning.contracts import Edge
 from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.settings import PlannerSettings
 
 # `_summarise_draws`' codes as rejection reasons (0: kept); 1-3 are `integrate.rollout_draws`'
 _DRAW_REASONS = (None, "state_box", "nonfinite", "input_limit", "input_limit", "obstacle")
@@ -100,7 +101,7 @@ class Propagator:
     rejected : why the last edge asked for was not made (`contracts.OUTCOMES`).
     """
 
-    def __init__(self, problem: PlanningProblem, settings):
+    def __init__(self, problem: PlanningProblem, settings: PlannerSettings):
         self.problem, self.settings = problem, settings
         sys = problem.system
         self.rejected = "no_costate"
@@ -138,15 +139,15 @@ class Propagator:
             self.input_weight = r
 
     def extremal_edges(self, x0: np.ndarray, params: np.ndarray, costates: np.ndarray,
-                    aim: np.ndarray | None = None, weight: np.ndarray | None = None
-                    ) -> Edge | None:
+                       aim: np.ndarray | None = None, weight: np.ndarray | None = None
+                       ) -> Edge | None:
         """The edge the learned steering keeps of its draws' parameters and costates: all
         integrated in one compiled call (`integrate.rollout_draws`), the obstacles and the
         goal region asked once for all their states, each cut and checked
         (`_summarise_draws`); then the first that reaches the goal region, else (OMPL's
         directed control sampling) the draw passing nearest ``aim`` (weighted by
         ``weight``), cut at its state nearest it; without ``aim`` the first draw that gives
-        an edge. None (and ``_rejected`` the last rejected draw's reason) when no draw gives
+        an edge. None (and ``rejected`` the last rejected draw's reason) when no draw gives
         an edge."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         n = sys.n_states

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from rrtcolearn.planning.contracts import Progress
+from rrtcolearn.planning.settings import PlannerSettings
 
 # Shooting and the LQR connection switch on once this many goal-biased iterations in a row
 # brought no node nearer the goal: the learned steering has stopped closing in, and a
@@ -50,7 +51,8 @@ class Schedule:
     switched: dict = field(default_factory=dict)
 
     @classmethod
-    def start(cls, settings, controls: bool, learned: bool, can_connect: bool) -> Schedule:
+    def start(cls, settings: PlannerSettings, controls: bool, learned: bool,
+              can_connect: bool) -> Schedule:
         """A new solve's schedule: ``controls`` whether random-control edges are possible,
         ``learned`` whether there are learned functions, ``can_connect`` whether shooting
         and the funnel can run (learned functions and ``params_from_costate``)."""
@@ -62,7 +64,7 @@ class Schedule:
                    auto_lqr=s.goal_lqr is None)
 
     @staticmethod
-    def initial(settings) -> dict[str, int | bool]:
+    def initial(settings: PlannerSettings) -> dict[str, int | bool]:
         """The connections on from the start by the settings: name -> True, or for the
         funnel its number of extremals."""
         s = settings
