@@ -7,6 +7,7 @@ process CPU around each plan. Prints per case the median CPU of each tree over a
 the ratio B / A and whether the trees' hashes agree, then the ratio of the summed medians.
 
     python bench/planner_ab.py --a /work/wt-old/src --b src [--rounds 4] [--repeats 3]
+                               [--cases pendulum,quadrotor]
 """
 
 from __future__ import annotations
@@ -43,12 +44,14 @@ def fit_all(models: Path) -> None:
         done[case.fit] = target
 
 
-def worker(models: Path, repeats: int) -> None:
+def worker(models: Path, repeats: int, cases: set[str] | None) -> None:
     """One process's plans: per case the CPU of each plan and the tree's hash, as JSON."""
     from tests.tree_cases import CASES, load_model, plan_case, tree_hash
 
     out = {}
     for i, case in enumerate(CASES):
+        if cases is not None and case.name not in cases:
+            continue
         model = load_model(case, _model_dir(models, i))
         plan_case(case, model)  # warm: first calls of this case's kernels
         cpu, digest = [], None
@@ -68,11 +71,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--models", default="/tmp/planner_ab_models")
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--cases", default=None, help="comma-separated case names (default all)")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     models = Path(args.models)
     if args.worker:
-        worker(models, args.repeats)
+        worker(models, args.repeats, None if args.cases is None else set(args.cases.split(",")))
         return {}
     models.mkdir(parents=True, exist_ok=True)
     fit_all(models)
@@ -82,7 +86,8 @@ def main(argv: list[str] | None = None) -> dict:
             env = {**os.environ, "PYTHONPATH": str(Path(getattr(args, side)).resolve())}
             res = subprocess.run(
                 [sys.executable, __file__, "--a", args.a, "--b", args.b, "--models",
-                 str(models), "--repeats", str(args.repeats), "--worker"],
+                 str(models), "--repeats", str(args.repeats), "--worker",
+                 *(["--cases", args.cases] if args.cases else [])],
                 env=env, capture_output=True, text=True, check=True, cwd=ROOT)
             runs[side].append(json.loads(res.stdout.strip().splitlines()[-1]))
     import numpy as np
