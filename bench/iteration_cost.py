@@ -25,18 +25,15 @@ from rrtcolearn.planning.rrt import RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.systems import make
 
-# the parts of an iteration timed on their own: a learned expansion, a random-control one
-# (goal-biased: directed), a compiled batch of random-control iterations (up to the next
-# goal-biased one), the goal connections of a goal-biased iteration
 _WARM = 2000  # iterations of the throwaway solve before a saved model's timed one
-
-_PARTS = {"_learned_iteration": "learned", "_control_edge": "control",
-          "_explore": "compiled batch", "_connect": "connect"}
 
 
 class _Probe(TerminationCondition):
     """Stops after the last window; records thread CPU at each window's ends, and per part of
-    an iteration (`_PARTS`) its calls and CPU within each window."""
+    an iteration its calls and CPU within each window. The parts: a learned expansion
+    ("learned"), a random-control one ("control", goal-biased: directed), a compiled batch of
+    random-control iterations up to the next goal-biased one ("compiled batch"), one goal
+    connection's try ("connect")."""
 
     def __init__(self, planner: RRTCoLearn, sizes: list[int], window: int):
         super().__init__(time_limit=None)
@@ -45,9 +42,28 @@ class _Probe(TerminationCondition):
         self.result: dict[int, float] = {}
         self.parts: dict[int, dict[str, list[float]]] = {}
         self._open: list[int] = []  # the windows being measured
-        for method, part in _PARTS.items():
-            if hasattr(planner, method):  # (an older planner may lack a part)
-                setattr(planner, method, self._timed(getattr(planner, method), part))
+        self._run = None  # the solve's state, once it starts (its tree's size)
+        start = planner.start
+
+        def started(rng):
+            self._run = start(rng)
+            return self._run
+        planner.start = started
+        # the strategies' entry points (`contracts.Steering`, `contracts.Connection`)
+        if planner.learned is not None:
+            planner.learned.steer = self._timed(planner.learned.steer, "learned")
+        if planner.controls is not None:
+            planner.controls.control_edge = self._timed(planner.controls.control_edge,
+                                                        "control")
+            planner.controls.run_batch = self._timed(planner.controls.run_batch,
+                                                     "compiled batch")
+        make = planner.connection
+
+        def connection(*args, **kwargs):
+            made = make(*args, **kwargs)
+            made.connect = self._timed(made.connect, "connect")
+            return made
+        planner.connection = connection
 
     def _timed(self, fn, part: str):
         def timed(*args, **kwargs):
@@ -63,7 +79,7 @@ class _Probe(TerminationCondition):
         return timed
 
     def __call__(self, iterations: int) -> bool:
-        nodes = len(self.planner._indices[0]) if self.planner._indices else 1
+        nodes = self._run.tree.data.n_nodes if self._run is not None else 1
         t = time.thread_time()
         for size in self.sizes:
             if size not in self.marks and nodes >= size:

@@ -77,7 +77,7 @@ def test_off_is_the_learned_planner_and_auto_waits_for_a_stall(limited):
     """With control edges off, or auto before the switch, no control edge is drawn; auto
     grows the same tree as off until it switches (the switch is the only difference): it
     cannot switch within fewer than CONTROLS_AFTER iterations."""
-    from rrtcolearn.planning.rrt import CONTROLS_AFTER
+    from rrtcolearn.planning.schedule import CONTROLS_AFTER
 
     off = pipeline.plan(limited, [-np.pi, 0], [0, 0], 0.1, seed=1,
                         config=_with(limited, control_edges=False), time_limit=None,
@@ -152,7 +152,8 @@ def test_control_edge_cost_with_two_weighted_asymmetric_inputs():
                                                         max_duration=1.0))
     # the random-control expansion alone (it needs no learned model)
     rng = np.random.default_rng(0)
-    tree_edges = [planner._control_edge(rng, np.array([-1.0, -1.0]), False) for _ in range(50)]
+    tree_edges = [planner.controls.control_edge(rng, np.array([-1.0, -1.0]), False)
+                  for _ in range(50)]
     for edge in tree_edges:
         assert edge is not None
         traj, u, cost, steps, u_abs = edge.traj, edge.control, edge.cost, edge.steps, edge.u_abs
@@ -184,24 +185,25 @@ def test_control_edges_avoid_obstacles(limited):
 
 @pytest.mark.parametrize("directed", [False, True])
 def test_the_compiled_choice_is_the_general_one(limited, directed):
-    """A goal ball without obstacles takes `_pick_state`'s compiled pass; the general code
-    (user goal functions, obstacles) must choose the same edges from the same draws."""
+    """A goal ball without obstacles takes a compiled pass (`controls._pick_state`); the
+    general code (user goal functions, obstacles) must choose the same edges from the same
+    draws."""
     from rrtcolearn.planning.rrt import RRTCoLearn
 
     problem = pipeline.make_problem(limited.system, limited.config, [-np.pi, 0.0],
                                     [0.0, 0.0], 0.5)
     fast = RRTCoLearn(problem, limited.functions, limited.planner_settings())
     general = RRTCoLearn(problem, limited.functions, limited.planner_settings())
-    general._ball = None
+    general.propagator.ball = None  # (as for a user's goal function)
     rng_a, rng_b = np.random.default_rng(3), np.random.default_rng(3)
     starts = np.random.default_rng(4).uniform([-np.pi, -4.0], [np.pi, 4.0], size=(300, 2))
     hits = 0
     for x0 in [*starts, np.array([0.3, 0.0]), np.array([-0.2, 0.1])]:
-        a = fast._control_edge(rng_a, x0, directed)
-        b = general._control_edge(rng_b, x0, directed)
+        a = fast.controls.control_edge(rng_a, x0, directed)
+        b = general.controls.control_edge(rng_b, x0, directed)
         assert (a is None) == (b is None)
         if a is None:
-            assert fast._rejected == general._rejected
+            assert fast.controls.rejected == general.controls.rejected
             continue
         hits += a.hit
         np.testing.assert_array_equal(a.traj, b.traj)
@@ -224,7 +226,7 @@ def _tree_of(plan) -> tuple:
 @pytest.mark.parametrize("goal", ["ball", "function"])
 def test_the_compiled_iterations_are_the_python_ones(limited, goal):
     """While random controls explore, the iterations up to the next goal-biased one run
-    compiled (`RRTCoLearn._explore`); with the same seed the tree, its trajectories, the
+    compiled (`RandomControls.run_batch`); with the same seed the tree, its trajectories, the
     iteration count and the outcomes are the Python loop's, for a goal ball (tested in the
     kernel) and for a user's goal function (tested after each batch, the batch cut at the
     first edge that reaches the region)."""
@@ -240,15 +242,15 @@ def test_the_compiled_iterations_are_the_python_ones(limited, goal):
     settings = limited.planner_settings(_with(limited, control_edges=True))
     compiled = RRTCoLearn(problem, limited.functions, settings)
     python = RRTCoLearn(problem, limited.functions, settings)
-    python._explore_consts = lambda: None  # every iteration in Python
+    python.controls.batch_constants = lambda tree: None  # every iteration in Python
     batches = []  # per compiled batch: whether it reached the goal
-    explore = compiled._explore
+    run_batch = compiled.controls.run_batch
 
-    def counted(rng, run, budget):
-        pending = explore(rng, run, budget)
-        batches.append(run.goal_node >= 0)
+    def counted(rng, tree, progress, budget):
+        pending = run_batch(rng, tree, progress, budget)
+        batches.append(progress.goal_node >= 0)
         return pending
-    compiled._explore = counted
+    compiled.controls.run_batch = counted
     solved = 0
     for seed in range(4):
         for budget in (40, 5000):  # stopped by the budget mid-batch, and run to the goal
@@ -306,10 +308,10 @@ def test_a_solve_compiles_nothing_while_its_clock_runs(limited):
     load_kernels(sys, explore=True, lqr=True)
     kernels = ("costate_from_params_jit", "rollout_jit", "input_max_abs_jit", "propagate_jit",
                "rollout_batch_jit", "rollout_draws_jit", "explore_jit", "closed_loop_jit")
-    from rrtcolearn.planning import nearest, rrt
+    from rrtcolearn.planning import nearest, propagator
 
     # the planner's own compiled functions, loaded by the model's throwaway solve
-    own = {"_summarise_draws": rrt._summarise_draws, "_sqdists": nearest._sqdists,
+    own = {"_summarise_draws": propagator._summarise_draws, "_sqdists": nearest._sqdists,
            "_least": nearest._least}
 
     def signatures():
@@ -327,7 +329,7 @@ def test_a_solve_compiles_nothing_while_its_clock_runs(limited):
 
 
 def test_a_limit_that_stops_a_growing_tree_is_named_as_the_cause():
-    from rrtcolearn.planning.rrt import diagnose
+    from rrtcolearn.planning.diagnosis import diagnose
 
     line = diagnose({"added": 1, "out_of_reach": 1}, False, 2, False, (2.0, 1.9))
     assert line.startswith("limit reached after 2 iterations with 2 nodes")

@@ -84,6 +84,7 @@ def test_default_goal_draws_nothing(pendulum):
 def test_funnel_of_a_goal_region_keeps_states_near_the_goal(paper_model):
     # a region's tolerance is in its own units: the funnel must not drop the states within
     # that plain distance of the goal state (here all of them would go)
+    from rrtcolearn.planning.connections import FunnelConnection
     from rrtcolearn.planning.rrt import RRTCoLearn
 
     def goal_fn(x):
@@ -91,7 +92,8 @@ def test_funnel_of_a_goal_region_keeps_states_near_the_goal(paper_model):
 
     prob = PlanningProblem.create(paper_model.system, [-np.pi, 0], [0, 0], 5.0, goal_fn=goal_fn)
     planner = RRTCoLearn(prob, paper_model.functions, paper_model.planner_settings())
-    search = planner._build_funnel(np.random.default_rng(0), np.ones(2), 300)
+    search = FunnelConnection.build(planner.propagator, np.random.default_rng(0), np.ones(2),
+                                     300)
     near = np.linalg.norm(search.funnel.offsets, axis=1) < 5.0
     assert near.any()
 

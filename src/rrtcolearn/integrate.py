@@ -241,7 +241,7 @@ def closed_loop_jit(x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps, low,
 
 @_numba.njit(cache=True)
 def rollout_draws_jit(x0, lams, steps, w, dt, low, high, u_max):
-    # the learned steering's draws from x0 (planning/rrt.py, RRTCoLearn._draw_edges):
+    # the learned steering's draws from x0 (planning/propagator.py, extremal_edges):
     # z = (x0, lams[c], 0) integrated for steps[c] RK4 steps as rollout_jit does, draw after
     # draw into one array (starts (c + 1,) its rows), with |u*| at every row (input_max_abs)
     # and a code per draw: 0 kept, 1 a state outside [low, high], 2 a value not finite (each
@@ -312,7 +312,7 @@ def _mod(a, p):
 @_numba.njit(cache=True)
 def _ball_d2(x, goal):
     # squared weighted distance of x to the goal ball's centre, angles the short way round
-    # (planning/rrt.py _pick_state)
+    # (planning/controls.py _pick_state)
     d2 = 0.0
     for i in range(x.shape[0]):
         v = x[i] - goal[0, i]
@@ -338,8 +338,8 @@ def _index_point(x, index_consts, ii, out):
 @_numba.njit(cache=True)
 def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, states,
                 parents, controls, durations, costs, max_abs_u, shifts, R):
-    # the planner's random-control expansions compiled (planning/rrt.py,
-    # RRTCoLearn._explore), with the numbers of the Python iterations (the same generator
+    # the planner's random-control expansions compiled (planning/controls.py,
+    # RandomControls.run_batch), with the numbers of the Python iterations (the same generator
     # calls in the same order, the same arithmetic). First, with directed >= 0, a goal-biased
     # iteration's expansion from node directed: `samples` draws. Then up to budget
     # iterations, stopped before a goal-biased one: each draws the goal bias, a uniform
@@ -347,7 +347,7 @@ def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, 
     # it by one draw. A draw is an input uniform in the input box held for 1..longest steps,
     # stopped before its first state outside the constraint box or not finite; the node
     # goes at the draws' first state in the goal ball (ball), else with one draw at its last
-    # state, else at the state nearest the ball's centre (_control_edge, _pick_state).
+    # state, else at the state nearest the ball's centre (control_edge, _pick_state).
     # ints: budget, iterations, last_growth, stall, longest, ball, n_index, nearest_of, size,
     # directed, samples
     # floats: dt, goal_bias, tol2, w
@@ -421,7 +421,7 @@ def explore_jit(rng, ints, floats, boxes, goal, index_consts, points0, points1, 
                 if r == 0 or acc < best:
                     parent, best = r, acc
             count = 1
-        # the draws: inputs, then lengths (the generator calls of _control_edge)
+        # the draws: inputs, then lengths (the generator calls of control_edge)
         for c in range(count):
             for i in range(m):
                 inputs[c, i] = boxes[4, i] + (boxes[5, i] - boxes[4, i]) * rng.random()

@@ -33,6 +33,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from rrtcolearn.planning.connections import goal_lqr, lqr_chain, shoot_edge
+from rrtcolearn.planning.contracts import add_edge
+from rrtcolearn.planning.learned import goal_query
 from rrtcolearn.planning.tree import Plan, PlannerData
 
 if TYPE_CHECKING:
@@ -53,8 +56,9 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
     is.
 
     ``planner`` is the `RRTCoLearn` that made the plan (its problem, settings, learned U and
-    edge checks are used). Stops early once ``stop()`` is true (checked before each node).
-    ``extra["shortcuts"]`` records the edges added, the shots and the LQR loops tried.
+    edge checks, ``planner.propagator``, are used). Stops early once ``stop()`` is true
+    (checked before each node). ``extra["shortcuts"]`` records the edges added, the shots
+    and the LQR loops tried.
     """
     if not plan.solved or len(plan.path_nodes) < 3:
         return plan
@@ -64,7 +68,10 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
     tree = plan.tree
     lam, z0 = np.empty(n), np.empty(2 * n + 1)
     # the LQR connection's loop, where the settings allow it and the goal has an equilibrium
-    lqr = planner._build_lqr().lqr if s.goal_lqr is not False else None
+    prop = planner.propagator
+    lqr = goal_lqr(prop) if s.goal_lqr is not False else None
+    if isinstance(lqr, str):  # no equilibrium at the goal, or an unstable loop
+        lqr = None
     can_shoot = sys.params_from_costate is not None
     path = list(plan.path_nodes)
     best = float(_costs_to_come(tree, path)[-1])
@@ -89,19 +96,18 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
         if can_shoot and planner.model is not None:
             # U's guess where J says the edge may be cheaper (V's verdict is not asked: far
             # from the data U's guess still converges often enough to pay)
-            query = planner._goal_query(x0, sys.wrap_shift(x0[None])[0],
-                                        prob.goal_offset(x0[None])[0])
+            query = goal_query(x0, sys.wrap_shift(x0[None])[0], prob.goal_offset(x0[None])[0])
             j, u, _ = (a[0] for a in planner.model.query(query))
             if come[pos] + j < best:
                 guesses.append((u[:-1], min(max(u[-1], s.dt), budget)))
         for params, duration in guesses:
             shots += 1
-            edge = planner._shoot_edge(x0, params, duration, max(budget, s.dt), lam, z0)
+            edge = shoot_edge(prop, x0, params, duration, max(budget, s.dt), lam, z0)
             if edge is not None:
                 tails.append([edge])
         if lqr is not None:
             loops += 1
-            chain, _ = planner._lqr_chain(lqr, x0)
+            chain, _ = lqr_chain(prop, lqr, x0)
             if chain is not None:
                 tails.append(chain)
         costs = [sum(e.cost for e in t) for t in tails]
@@ -109,7 +115,7 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
             parent = node
             path = path[: pos + 1]
             for edge in tails[int(np.argmin(costs))]:
-                parent = planner._add_edge(tree, parent, edge)
+                parent = add_edge(tree, parent, edge, s.dt)
                 path.append(parent)
                 added += 1
             best = float(come[pos] + min(costs))
@@ -119,5 +125,5 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
         plan.extra["shortcuts"] = record
         return plan
     return replace(plan, path_nodes=path,
-                   end_goal_distance=planner._end_goal_distance(tree.states[path[-1]]),
+                   end_goal_distance=prop.end_goal_distance(tree.states[path[-1]]),
                    extra={**plan.extra, "shortcuts": record})

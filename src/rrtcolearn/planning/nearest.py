@@ -107,6 +107,14 @@ class NodeIndex:
         """Replace the point ``i`` not yet committed (`reserve`)."""
         self._points[i] = self._wrapped(np.asarray(x, dtype=np.float64))
 
+    def kernel_rows(self) -> np.ndarray:
+        """(4, n): the weights, the weighted angle lows, the periods and 1.0 at the angle
+        coordinates: how a compiled caller (`integrate.explore_jit`) stores and compares
+        points as this index does."""
+        n = len(self.weight)
+        return np.array([self.weight, self._low, self._period,
+                         np.isin(np.arange(n), self._angles)], dtype=np.float64)
+
     def _rebuild(self) -> None:
         from scipy.spatial import cKDTree  # (on first use: a plan's start-up skips it)
 

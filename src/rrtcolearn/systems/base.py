@@ -53,7 +53,7 @@ class System:
     rollout_draws_jit : compiled `rollout_jit` of a batch of costates from one state, checked
         (`rrtcolearn.integrate.rollout_draws`).
     explore_jit : the planner's random-control iterations compiled with ``dynamics``
-        (`rrtcolearn.planning.rrt.RRTCoLearn._explore`).
+        (`rrtcolearn.planning.controls.RandomControls.run_batch`).
     input_low, input_high : (m,) box of the inputs (+-inf where unbounded; None: no limits).
         With limits, u* is the minimiser of H over the box and every kernel above uses it
         (saturated optimal control, `rrtcolearn.systems.symbolic.limit_derivation`).

@@ -1,0 +1,262 @@
+"""The goal connections: ways to finish from a node of the tree into the goal region, each a
+`contracts.Connection` (``connect(tree) -> (node, edges) | None``) that keeps its own search
+state between the loop's goal-biased iterations.
+
+- `ShootingConnection`: one extremal by shooting (`shooting.shoot`) from the nearest untried
+  node, starting at U's guess;
+- `FunnelConnection`: continuation along a funnel of extremals into the goal
+  (`funnel.GoalFunnel`), then polished by shooting;
+- `LQRConnection`: the LQR closed loop about the goal's equilibrium (`lqr.GoalLQR`) as a chain
+  of constant-input edges.
+
+`shoot_edge` and `lqr_chain` are also what the anytime shortcuts (`planning.improve`) use.
+When each connection is switched on is `planning.schedule`'s to say.
+"""
+
+from __future__ import annotations
+
+from itertools import pairwise
+
+import numpy as np
+
+from rrtcolearn.learn.models import LearnedFunctions
+from rrtcolearn.planning.contracts import Edge, GrowingTree, grown
+from rrtcolearn.planning.funnel import GoalFunnel
+from rrtcolearn.planning.learned import goal_query
+from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
+from rrtcolearn.planning.propagator import Propagator
+from rrtcolearn.planning.shooting import shoot
+
+FUNNEL_POINTS = 3  # funnel states tried per node (each on its own extremal, nearest first)
+FUNNEL_STRETCH = 1.5  # a funnel connection may last this times the funnel's duration
+
+
+def shoot_edge(propagator: Propagator, x0: np.ndarray, params: np.ndarray, duration: float,
+               max_duration: float, lam: np.ndarray, z0: np.ndarray) -> Edge | None:
+    """The edge to the goal that shooting finds from ``x0`` starting at ``params`` and
+    ``duration``, checked like every edge; None unless it reaches the goal region. ``lam``
+    (n,) and ``z0`` (2n + 1,) are scratch."""
+    prob, s = propagator.problem, propagator.settings
+    res = shoot(prob.system, x0, params, duration, prob.goal_residual,
+                time_weight=s.time_weight, dt=s.dt, max_duration=max_duration,
+                tolerance=0.25 * prob.goal_tolerance, max_iterations=20)
+    if res is None:
+        return None
+    return propagator.goal_extremal(x0, np.append(res.params, res.steps * s.dt), lam, z0)
+
+
+def lqr_chain(propagator: Propagator, lqr: GoalLQR, x0: np.ndarray
+              ) -> tuple[list[Edge] | None, str]:
+    """The LQR closed loop from ``x0`` as a chain of constant-input edges (consecutive equal
+    inputs, e.g. saturated, merged into one) if it reaches the goal region within
+    ``funnel_duration``, and how the loop ended (`GoalLQR.run`)."""
+    prob, s = propagator.problem, propagator.settings
+    out = lqr.run(x0, max(1, round(s.funnel_duration / s.dt)), propagator.box,
+                  propagator.goal_mask, prob.validity if prob.validity else None)
+    if not out.reached:
+        return None, out.end
+    us = out.inputs
+    breaks = [0, *np.flatnonzero(np.any(us[1:] != us[:-1], axis=1)) + 1, len(us)]
+    chain = []
+    for a, b in pairwise(breaks):
+        u = us[a].copy()
+        rate = propagator.hold_rate(u)
+        last = b == len(us)
+        chain.append(Edge(out.states[a : b + 1].copy(), b - a, (b - a) * s.dt * rate,
+                          float(np.abs(u).max()), last, control=u,
+                          end_distance=float(prob.goal_distance(out.states[b])[0])
+                          if last else None))
+    return chain, out.end
+
+
+def goal_lqr(propagator: Propagator) -> GoalLQR | str:
+    """The LQR controller about the goal's equilibrium, or why there is none
+    (`lqr.build_goal_lqr`)."""
+    return build_goal_lqr(propagator.problem, propagator.settings.dt, propagator.input_weight)
+
+
+class ShootingConnection:
+    """Shooting from the nearest untried node within ``connect_reach`` of the goal, from U's
+    guess; ``failed`` counts the nodes tried in vain (the schedule's funnel rule)."""
+
+    name = "shooting"
+
+    def __init__(self, propagator: Propagator, model: LearnedFunctions):
+        self.propagator, self.model = propagator, model
+        n = propagator.problem.system.n_states
+        self._lam, self._z0 = np.empty(n), np.empty(2 * n + 1)
+        self.tried = np.zeros(256, dtype=bool)
+        self.failed = 0
+
+    def connect(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
+        """An edge from the nearest untried node to the goal by shooting, or None.
+
+        The first guesses are U's prediction for (node, goal) with its duration and with
+        2, 4 and 8 times it: U's duration is the least reliable part of its guess far from the
+        data, and Newton's method on the duration alone would not cross the long stretches
+        where the residual grows before it falls.
+        """
+        prob, s = self.propagator.problem, self.propagator.settings
+        m = tree.data.n_nodes
+        self.tried = tried = grown(self.tried, m, False)
+        before = int(tried[:m].sum())
+        states = tree.states
+        offset = prob.goal_offset(states)
+        wd = prob.goal_residual(states) * tree.weight
+        d2 = np.einsum("ij,ij->i", wd, wd)
+        d2[tried[:m] | (d2 > s.connect_reach**2)] = np.inf
+        node = int(np.argmin(d2))
+        if np.isfinite(d2[node]):
+            tried[node] = True
+            x0 = states[node]
+            guess = self.model.query(goal_query(x0, tree.shifts[node], offset[node]))[1][0]
+            for factor in (1.0, 2.0, 4.0, 8.0):
+                duration = min(max(guess[-1], s.dt) * factor, s.max_duration)
+                edge = shoot_edge(self.propagator, x0, guess[:-1], duration, s.max_duration,
+                                  self._lam, self._z0)
+                if edge is not None:
+                    return node, [edge]
+                if duration >= s.max_duration:
+                    break
+        self.failed += int(tried[:m].sum()) - before
+        return None
+
+    def report(self) -> dict:
+        return {}
+
+    def note(self) -> str | None:
+        return None
+
+
+class FunnelConnection:
+    """Continuation from the untried node nearest a funnel state (within ``funnel_radius``)."""
+
+    name = "funnel"
+
+    def __init__(self, propagator: Propagator, funnel: GoalFunnel):
+        self.propagator, self.funnel = propagator, funnel
+        n = propagator.problem.system.n_states
+        self._lam, self._z0 = np.empty(n), np.empty(2 * n + 1)
+        # per tree node: its nearest funnel states (distances and indices, rows filled up to
+        # `queried`) and whether the connection has started from it
+        self.dist = np.full((256, FUNNEL_POINTS), np.inf)
+        self.index = np.zeros((256, FUNNEL_POINTS), int)
+        self.tried = np.zeros(256, bool)
+        self.queried = 0
+
+    @classmethod
+    def build(cls, propagator: Propagator, rng: np.random.Generator, weight: np.ndarray,
+              n_simulations: int) -> FunnelConnection:
+        """The connection along a goal funnel of ``n_simulations`` extremals (drawn from
+        ``rng``; built inside the timed region: its CPU time counts as planning time)."""
+        prob, s = propagator.problem, propagator.settings
+        funnel = GoalFunnel.build(
+            prob.system, prob.goal, prob.goal_offset, rng, n_simulations=n_simulations,
+            time_weight=s.time_weight, dt=s.dt, max_duration=s.funnel_duration,
+            max_cost=s.funnel_max_cost, scale=weight,
+            # the funnel drops its states within this plain distance of the goal; a goal
+            # region's tolerance is in its own units, so there every state is kept
+            tolerance=prob.goal_tolerance if prob.goal_fn is None and
+            prob.goal_weights is None else 0.0,
+            min_duration=s.funnel_min_duration, box=(prob.state_low, prob.state_high))
+        return cls(propagator, funnel)
+
+    def connect(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
+        """An edge to the goal from the untried node nearest a funnel state, or None: the
+        funnel extremal's solution moved to the node (`GoalFunnel.steer`), then polished by
+        a forward solve from the node."""
+        prop = self.propagator
+        prob, sys, s = prop.problem, prop.problem.system, prop.settings
+        lam, z0 = self._lam, self._z0
+        m = tree.data.n_nodes
+        self.dist = grown(self.dist, m, np.inf)
+        self.index = grown(self.index, m, 0)
+        self.tried = grown(self.tried, m, False)
+        if self.queried < m:
+            offsets = prob.goal_offset(tree.data.states[self.queried : m])
+            d, i = self.funnel.nearest(offsets, FUNNEL_POINTS, s.funnel_radius)
+            self.dist[self.queried : m], self.index[self.queried : m] = d, i
+            self.queried = m
+        best = np.where(self.tried[:m], np.inf, self.dist[:m, 0])
+        node = int(np.argmin(best))
+        if not best[node] <= s.funnel_radius:
+            return None
+        self.tried[node] = True
+        x0 = tree.data.states[node]
+        offset = prob.goal_offset(x0)[0]
+        # the node may be farther from the goal than the funnel state it starts from
+        longest = FUNNEL_STRETCH * s.funnel_duration
+        for q in range(FUNNEL_POINTS):
+            if not self.dist[node, q] <= s.funnel_radius:
+                break
+            guess = self.funnel.steer(offset, int(self.index[node, q]), longest)
+            if guess is None:
+                continue
+            params = sys.params_from_costate(x0[None], guess[0][None])[0]
+            # the continuation's extremal as it is (exact up to the interpolation between
+            # RK4 steps), else polished by a forward solve
+            edge = prop.goal_extremal(
+                x0, np.append(params, max(1, round(guess[1] / s.dt)) * s.dt), lam, z0) \
+                or shoot_edge(prop, x0, params, guess[1], longest, lam, z0)
+            if edge is not None:
+                return node, [edge]
+        return None
+
+    def report(self) -> dict:
+        return {"funnel_states": len(self.funnel)}
+
+    def note(self) -> str | None:
+        return None
+
+
+class LQRConnection:
+    """The LQR closed loop from the untried node with the least Lyapunov value; off (never
+    connects, ``off`` says why) where the goal has no equilibrium or the loop is unstable."""
+
+    name = "lqr"
+
+    def __init__(self, propagator: Propagator):
+        self.propagator = propagator
+        built = goal_lqr(propagator)
+        self.lqr, self.off = (None, built) if isinstance(built, str) else (built, None)
+        # per tree node its Lyapunov value (rows filled up to `queried`) and whether the
+        # connection has started from it; `tries` counts the closed loops run
+        self.value = np.full(256, np.inf)
+        self.tried = np.zeros(256, dtype=bool)
+        self.queried = 0
+        self.tries = 0
+        # the least value from which the loop ran out of time (funnel_duration) without
+        # reaching the goal: only nodes below it are tried (from farther in V it takes longer)
+        self.ceiling = np.inf
+
+    def connect(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
+        """The LQR closed loop to the goal from the untried node with the least Lyapunov
+        value, as a chain of constant-input edges; (node, edges) or None when it does not
+        reach the goal region within ``funnel_duration``, leaves the constraints, meets an
+        obstacle or leaves the loop's basin (`GoalLQR.run`). Once a loop runs out of time,
+        only nodes with a lower value than its start are tried."""
+        lqr = self.lqr
+        if lqr is None:
+            return None
+        m = tree.data.n_nodes
+        self.value = grown(self.value, m, np.inf)
+        self.tried = grown(self.tried, m, False)
+        if self.queried < m:
+            self.value[self.queried : m] = lqr.value(tree.data.states[self.queried : m])
+            self.queried = m
+        value = np.where(self.tried[:m], np.inf, self.value[:m])
+        node = int(np.argmin(value))
+        if not value[node] < self.ceiling:
+            return None
+        self.tried[node] = True
+        self.tries += 1
+        chain, end = lqr_chain(self.propagator, lqr, tree.data.states[node])
+        if end == "timeout":
+            self.ceiling = float(value[node])
+        return None if chain is None else (node, chain)
+
+    def report(self) -> dict:
+        return {"goal_lqr": {"tries": self.tries} if self.lqr else {"off": self.off}}
+
+    def note(self) -> str | None:
+        return None if self.lqr is not None else f"LQR goal connection off: {self.off}"

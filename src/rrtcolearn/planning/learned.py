@@ -1,0 +1,233 @@
+"""The learned steering (Alg. 1's expansion): the parent with the least predicted cost-to-go
+J among the (node, target) queries that V accepts, steered by U's predicted costate; the
+steering parameters drawn around U's prediction (truncated normals) and integrated as
+extremals (`propagator.Propagator`). Knows nothing of random controls or the goal
+connections; a `contracts.Steering`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import ndtr, ndtri
+
+from rrtcolearn.learn.models import LearnedFunctions, best_valid
+from rrtcolearn.planning.contracts import Edge, GrowingTree
+from rrtcolearn.planning.nearest import NodeIndex
+from rrtcolearn.planning.propagator import Propagator
+
+
+def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
+    """One draw of N(mean, sigma) truncated to [lo, hi] by inverting the CDF."""
+    a, b = ndtr((lo - mean) / sigma), ndtr((hi - mean) / sigma)
+    if b - a < 1e-12:  # mean far outside the bounds: the nearest bound is the limit
+        return lo if mean < lo else hi
+    return float(np.clip(mean + sigma * ndtri(a + (b - a) * rng.random()), lo, hi))
+
+
+def _truncnorm_inverse(u, mean, sigma: float, lo, hi, a, b):
+    """N(mean, sigma) truncated to [lo, hi] at uniforms ``u``, where a and b are the CDF at the
+    bounds (elementwise)."""
+    return np.clip(mean + sigma * ndtri(a + (b - a) * u), lo, hi)
+
+
+def _truncnorm_vec(rng: np.random.Generator, mean: np.ndarray, sigma: float, lo: np.ndarray,
+                   hi: np.ndarray) -> np.ndarray:
+    """`_truncnorm` elementwise; it draws a uniform for each coordinate that needs one, in
+    order, so the draws and the generator's state are those of calling it coordinate by
+    coordinate."""
+    a, b = ndtr((lo - mean) / sigma), ndtr((hi - mean) / sigma)
+    out = np.where(mean < lo, lo, hi)  # the nearest bound, where the mass is negligible
+    draw = b - a >= 1e-12
+    u = rng.random(int(draw.sum()))
+    out[draw] = _truncnorm_inverse(u, mean[draw], sigma, lo[draw], hi[draw], a[draw], b[draw])
+    return out
+
+
+def goal_query(x0: np.ndarray, shift: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """The learning query (1, 2n) from ``x0`` to the goal: both ends shifted by whole turns
+    (``shift``) into the box, the goal as ``x0 - offset`` (angles the short way)."""
+    return np.concatenate([x0 + shift, x0 - offset + shift])[None]
+
+
+class LearnedSteering:
+    """Steering by the learned J, U and V (``model``).
+
+    Settings it reads (`settings.PlannerSettings`, "learned steering"): ``sigma``,
+    ``sigma_goal``, ``decimals``, ``control_samples``, ``max_candidates``,
+    ``extend_distance``, ``max_resample``, ``data_reach`` (through ``reach``), and the
+    duration's bounds ``dt`` and ``max_duration``.
+    """
+
+    kind = "learned"
+
+    def __init__(self, propagator: Propagator, model: LearnedFunctions):
+        self.propagator, self.model = propagator, model
+        problem, s = propagator.problem, propagator.settings
+        self.problem, self.settings = problem, s
+        sys = problem.system
+        # a query (x0, x1) farther apart than this cannot have m neighbours within V's
+        # threshold, since every data pair is at most data_reach apart (weighted; a weighted
+        # distance r is at most r / min(weight) raw)
+        self.reach = float((s.data_reach + np.sqrt(2.0) * model.validity_.threshold
+                            / model.n_neighbors) / float(np.min(s.metric_scale)))
+        self._circular = np.zeros(sys.n_params, dtype=bool)
+        self._circular[: len(sys.param_circular)] = sys.param_circular
+        # the steering parameters' and the duration's bounds
+        self._bounds = (np.append(sys.param_low, s.dt), np.append(sys.param_high, s.max_duration))
+        n = sys.n_states
+        self._lam, self._z0 = np.empty(n), np.empty(2 * n + 1)  # scratch: one extremal's start
+
+    @property
+    def rejected(self) -> str:
+        """Why the last `steer` gave no edge (`contracts.OUTCOMES`)."""
+        return self.propagator.rejected
+
+    def _sample_params(self, rng, prediction: np.ndarray, sigma: float) -> np.ndarray:
+        sys, s = self.problem.system, self.settings
+        k = sys.n_params
+        if not self._circular.any():
+            # every coordinate a truncated normal: one vector of uniforms, the same numbers
+            # (and so the same draws) as the coordinate-by-coordinate loop below
+            return np.round(_truncnorm_vec(rng, prediction[: k + 1], sigma, *self._bounds),
+                            s.decimals)
+        out = np.empty(k + 1)
+        for j in range(k):
+            lo, hi = sys.param_low[j], sys.param_high[j]
+            if self._circular[j]:
+                v = prediction[j] + sigma * rng.standard_normal()
+                v = np.round(v, s.decimals)
+                out[j] = lo + np.mod(v - lo, hi - lo)
+            else:
+                out[j] = np.round(_truncnorm(rng, prediction[j], sigma, lo, hi), s.decimals)
+        out[k] = np.round(_truncnorm(rng, prediction[k], sigma, s.dt, s.max_duration), s.decimals)
+        return out
+
+    def nearest(self, states: np.ndarray, target: np.ndarray, weight: np.ndarray,
+                 wrapped: NodeIndex) -> tuple[int, np.ndarray, float]:
+        """The tree node nearest ``target`` (weighted, angles modulo a turn): its index, the
+        offset to the target (angles the short way round) and the weighted distance."""
+        i = int(wrapped.nearest(target, 1)[0])
+        diff = target - states[i]
+        angles = list(self.problem.system.angle_dims)
+        if angles:
+            diff[angles] = np.mod(diff[angles] + np.pi, 2.0 * np.pi) - np.pi
+        wd = diff * weight
+        return i, diff, float(np.sqrt(wd @ wd))
+
+    def _extend(self, states: np.ndarray, target: np.ndarray, weight: np.ndarray,
+                wrapped: NodeIndex) -> np.ndarray:
+        """``target`` moved to within ``extend_distance`` of its nearest node (weighted, angles
+        modulo a turn)."""
+        i, diff, dist = self.nearest(states, target, weight, wrapped)
+        factor = min(1.0, self.settings.extend_distance / dist) if dist > 0 else 1.0
+        return states[i] + factor * diff
+
+    def _edge(self, rng, x0: np.ndarray, prediction: np.ndarray, sigma: float,
+              lam: np.ndarray, z0: np.ndarray):
+        """One edge from ``x0``: steering parameters drawn around ``prediction``, integrated,
+        checked and cut; None when the draw gives no edge."""
+        # redraw parameters whose costate does not exist or whose input already breaks
+        # the limit at the start: such an edge would be rejected without integrating it
+        self.propagator.rejected = "no_costate"
+        for _ in range(self.settings.max_resample):
+            params = self._sample_params(rng, prediction, sigma)
+            if self.propagator.start_extremal(x0, params, lam, z0):
+                return self.propagator.extremal_edges(x0, params[None], lam[None])
+        return None
+
+    def _draws(self, rng, x0: np.ndarray, prediction: np.ndarray, sigma: float, count: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Up to ``count`` steering draws around ``prediction`` that have a costate, drawn in
+        blocks (parameters and costates vectorised): (parameters (c, k+1), costates (c, n))."""
+        sys, s = self.problem.system, self.settings
+        lo, hi = self._bounds
+        mean = np.broadcast_to(prediction[: lo.size], (2 * count, lo.size))
+        a, b = ndtr((lo - mean) / sigma), ndtr((hi - mean) / sigma)
+        kept_p, kept_l, have = [], [], 0
+        for _ in range(s.max_resample):
+            u = rng.random(mean.shape)
+            p = np.where(b - a < 1e-12, np.where(mean < lo, lo, hi),
+                         _truncnorm_inverse(u, mean, sigma, lo, hi, a, b))
+            p = np.round(p, s.decimals)
+            with np.errstate(invalid="ignore"):  # rows without a costate are NaN
+                lam, valid = sys.costate_from_params(
+                    np.broadcast_to(x0, (len(p), x0.size)), p[:, :-1], s.time_weight)
+            kept_p.append(p[valid])
+            kept_l.append(lam[valid])
+            have += int(valid.sum())
+            if have >= count:
+                break
+        self.propagator.rejected = "no_costate"
+        return np.concatenate(kept_p)[:count], np.concatenate(kept_l)[:count]
+
+    def steer(self, rng: np.random.Generator, tree: GrowingTree, target: np.ndarray,
+              to_goal: bool) -> tuple[int, Edge | None]:
+        """Alg. 1's expansion: the parent with the least predicted J among the valid queries,
+        steered by U. (parent, edge); the edge is None (and ``rejected`` says why) when no
+        node is within reach, V rejects every query or no draw gives an edge."""
+        prob, sys, s = self.problem, self.problem.system, self.settings
+        states, weight, wrapped = tree.states, tree.weight, tree.wrapped
+        lam, z0, reach2 = self._lam, self._z0, self.reach * self.reach
+        n, m = sys.n_states, len(states)
+        none = (-1, None)
+        if s.extend_distance and not to_goal:
+            target = self._extend(states, target, weight, wrapped)
+        aim_images = to_goal and prob.wrap_goal
+        if s.max_candidates is not None:
+            # the nearest (weighted) nodes only, from the index: the iteration's cost does
+            # not grow with the tree
+            near = (wrapped if aim_images else tree.plain).nearest(target, s.max_candidates)
+        else:  # the paper's planner: every node within reach
+            near = np.arange(m)
+        # each node aims at the goal's image nearest to it (angles modulo a turn)
+        aims = states[near] - prob.offset_to(states[near], target) if aim_images \
+            else target
+        diff = states[near] - aims
+        within = np.einsum("ij,ij->i", diff, diff) <= reach2
+        near = near[within]
+        if near.size == 0:
+            self.propagator.rejected = "out_of_reach"
+            return none
+        order = np.argsort(near)  # candidates in node order, as the paper's planner has them
+        near = near[order]
+        if aim_images:
+            aims = aims[within][order]
+        sh = tree.shifts[near]
+        query = np.concatenate([states[near] + sh, aims + sh], axis=1)
+        row, neighbours = best_valid(self.model, query)
+        if row < 0:
+            self.propagator.rejected = "invalid_query"
+            return none
+        parent = int(near[row])
+        prediction = self.model.steer(query[row : row + 1],
+                                      None if neighbours is None else neighbours[None])[0]
+        x0 = states[parent]
+        aim = aims[row] if aim_images else target
+        sigma = s.sigma_goal if to_goal else s.sigma
+        if s.control_samples > 1 and not self._circular.any():
+            draws = self._draws(rng, x0, prediction, sigma, s.control_samples)
+            return parent, self.propagator.extremal_edges(x0, *draws, aim, weight)
+        # one draw at a time (the paper's planner)
+        cands = (self._edge(rng, x0, prediction, sigma, lam, z0)
+                 for _ in range(s.control_samples))
+        edge, best_d2 = None, np.inf
+        for cand in cands:
+            if cand is None:
+                continue
+            if s.control_samples == 1 or cand.hit:  # the paper's single draw, or a goal hit
+                edge = cand
+                break
+            # OMPL's directed control sampling: keep the draw ending nearest the target,
+            # cut at its state nearest the target
+            wd = (cand.traj[1:, :n] - aim) * weight
+            d2 = np.einsum("ij,ij->i", wd, wd)
+            k = int(np.argmin(d2))
+            if d2[k] < best_d2:
+                best_d2 = float(d2[k])
+                traj_c, params_c = cand.traj[: k + 2], cand.params.copy()
+                params_c[-1] = (k + 1) * s.dt
+                u_c = float(np.abs(sys.optimal_control(
+                    traj_c[:, :n], traj_c[:, n : 2 * n])).max())
+                edge = Edge(traj_c, k + 1, float(traj_c[-1, 2 * n]), u_c, False, params_c,
+                            cand.costate)
+        return parent, edge

@@ -1,0 +1,110 @@
+"""When each strategy is on: the one place that switches random controls and the goal
+connections on, and the thresholds it switches them at.
+
+From the start, by the settings: random controls with ``plan.control_edges = true`` (or no
+learned functions), shooting with ``plan.goal_connect = true``, a funnel of
+``plan.goal_funnel`` extremals, the LQR connection with ``plan.goal_lqr = true``. Left to the
+planner (the setting None), each switches on when the tree stalls, by the rules below; a
+setting false keeps it off.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from rrtcolearn.planning.contracts import Progress
+from rrtcolearn.planning.settings import PlannerSettings
+
+# Shooting and the LQR connection switch on once this many goal-biased iterations in a row
+# brought no node nearer the goal: the learned steering has stopped closing in, and a
+# connection tried at every goal-biased iteration before then would spend CPU where the
+# steering still gets nearer by itself. (Chosen with the derived settings of issue 16,
+# commit 8ae003d; docs/derived_settings.md states the rule.)
+CONNECT_AFTER = 50
+# Random-control edges switch on once this many iterations in a row brought no node nearer
+# the goal. 30, not 100: measured side by side on every problem with an input box
+# (docs/derived_settings.md), the earlier switch cut the median CPU on the sparse_rrt
+# acrobot and cart-pole and the quadrotor by 2-7x and on the torque-limited pendulum rows by
+# 0.67-0.81x, at up to 15% higher first-path cost on the pendulum; a switch at once (1) was
+# faster still there but raised that cost by 54%.
+CONTROLS_AFTER = 30
+# The funnel is built once shooting has failed from this many nodes: building it costs
+# AUTO_FUNNEL integrations, worth paying only where shooting alone does not get into the
+# goal. (Chosen with the derived settings of issue 16, commit 8ae003d.)
+FUNNEL_AFTER = 20
+# The automatic funnel's extremals (an explicit plan.goal_funnel sets another size). (Chosen
+# with the derived settings of issue 16, commit 8ae003d; docs/external_problems.md records
+# that on sparse_rrt's problems a funnel this size did not connect.)
+AUTO_FUNNEL = 20_000
+
+
+@dataclass
+class Schedule:
+    """Which strategies one solve may switch on by itself, which are on, and when each was
+    switched on (``switched``: name -> iteration, recorded in the plan)."""
+
+    controls: bool  # random-control edges possible (an input box, not plan.control_edges false)
+    exploring: bool  # random-control edges on
+    auto_connect: bool  # the planner may switch shooting on
+    auto_funnel: bool  # ... and the funnel
+    auto_lqr: bool  # ... and the LQR connection
+    switched: dict = field(default_factory=dict)
+
+    @classmethod
+    def start(cls, settings: PlannerSettings, controls: bool, learned: bool,
+              can_connect: bool) -> Schedule:
+        """A new solve's schedule: ``controls`` whether random-control edges are possible,
+        ``learned`` whether there are learned functions, ``can_connect`` whether shooting
+        and the funnel can run (learned functions and ``params_from_costate``)."""
+        s = settings
+        return cls(controls=controls,
+                   exploring=controls and (s.control_edges is True or not learned),
+                   auto_connect=s.goal_connect is None and can_connect,
+                   auto_funnel=s.goal_funnel is None and can_connect,
+                   auto_lqr=s.goal_lqr is None)
+
+    @staticmethod
+    def initial(settings: PlannerSettings) -> dict[str, int | bool]:
+        """The connections on from the start by the settings: name -> True, or for the
+        funnel its number of extremals."""
+        s = settings
+        return {name: on for name, on in (("shooting", s.goal_connect is True),
+                                          ("funnel", s.goal_funnel),
+                                          ("lqr", bool(s.goal_lqr))) if on}
+
+    def controls_due(self, progress: Progress) -> bool:
+        """Switch random controls on now (an ordinary iteration's start): the learned
+        steering stalls."""
+        if self.controls and not self.exploring and \
+                progress.since_growth_nearer >= CONTROLS_AFTER:
+            self.exploring = True
+            self.switched["controls"] = progress.iterations
+            return True
+        return False
+
+    def connections_due(self, progress: Progress, on: dict) -> list[str]:
+        """The connections to switch on at this goal-biased iteration, before any is tried
+        (``on``: the connections on, by name). The LQR connection also while random controls
+        explore (where it works, it is what gets the random-control tree into a small goal
+        region); shooting not (in the external problems it never reached the goal then, and
+        took up to a third of the CPU)."""
+        due = []
+        if progress.since_nearer >= CONNECT_AFTER:
+            if self.auto_lqr and on.get("lqr") is None:
+                due.append("lqr")
+            if self.auto_connect and on.get("shooting") is None and not self.exploring:
+                due.append("shooting")
+        for name in due:
+            self.switched[name] = progress.iterations
+        return due
+
+    def due_before_try(self, name: str, on: dict, progress: Progress) -> bool:
+        """Switch ``name`` on now, just before it would be tried: the funnel, once shooting
+        (tried just before it, in vain) has failed from FUNNEL_AFTER nodes."""
+        if name != "funnel" or not self.auto_funnel or on.get("funnel") is not None:
+            return False
+        shooting = on.get("shooting")
+        if shooting is not None and shooting.failed >= FUNNEL_AFTER:
+            self.switched["funnel"] = progress.iterations
+            return True
+        return False

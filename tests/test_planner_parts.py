@@ -1,0 +1,147 @@
+"""The planner's parts alone and plugged in: each steering strategy against a tree and a
+problem, and a goal connection written here, outside the package, that the loop runs
+without a change to it (`RRTCoLearn(..., connections=...)`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from tests.conftest import pendulum_edge
+from tests.test_planner import check_plan_file
+
+from rrtcolearn import pipeline
+from rrtcolearn.config import load_config
+from rrtcolearn.integrate import propagate
+from rrtcolearn.planning.contracts import OUTCOMES, Edge, GrowingTree
+from rrtcolearn.planning.rrt import RRTCoLearn
+from rrtcolearn.planning.termination import TerminationCondition
+
+U_MAX = 1.0
+
+
+@pytest.fixture(scope="module")
+def limited(tmp_path_factory):
+    """The pendulum with |u| <= 1, a small dataset."""
+    cfg = load_config(overrides=[f"system.u_max={U_MAX}", "generate.n_simulations=3000",
+                                 "clean.k_max=300"])
+    run = tmp_path_factory.mktemp("parts")
+    pipeline.generate(cfg, run)
+    pipeline.clean(cfg, run)
+    return pipeline.fit(cfg, run)
+
+
+def _planner(model, connections=(), **plan):
+    cfg = model.config
+    cfg = cfg.model_copy(update={"plan": cfg.plan.model_copy(update=plan)})
+    problem = pipeline.make_problem(model.system, cfg, [-np.pi, 0.0], [0.0, 0.0], 0.05)
+    return RRTCoLearn(problem, model.functions, model.planner_settings(cfg), connections)
+
+
+class OneStepConnection:
+    """Connect by one constant input when the goal is that close: from the untried node
+    nearest the goal (the goal test's distance), each input of a grid over the input box
+    held for up to ``steps`` RK4 steps; the first held input whose states enter the goal
+    region (within the state box, clear of obstacles) is the edge, cut there. Written
+    against `contracts.Connection` only."""
+
+    name = "one_step"
+
+    def __init__(self, planner: RRTCoLearn, steps: int = 30, inputs: int = 21):
+        self.propagator = planner.propagator
+        self.steps = steps
+        low, high = self.propagator.control_box
+        self.grid = np.linspace(low, high, inputs)  # (inputs, m)
+        self.tried: set[int] = set()
+        self.tries = 0
+
+    def connect(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
+        prop = self.propagator
+        prob, dt = prop.problem, prop.settings.dt
+        dist = prob.goal_distance(tree.states)
+        dist[list(self.tried)] = np.inf
+        node = int(np.argmin(dist))
+        if not np.isfinite(dist[node]):
+            return None
+        self.tried.add(node)
+        self.tries += 1
+        x0 = tree.states[node]
+        for u in self.grid:
+            states = propagate(prob.system, x0, u, dt, self.steps, *prop.box)
+            inside = np.all((states >= prop.box[0]) & (states <= prop.box[1]), axis=1)
+            if prob.validity:
+                inside &= prob.validity(states)
+            if not inside.all():
+                states = states[: int(np.argmin(inside))]  # the valid prefix
+            hits = np.flatnonzero(prop.goal_mask(states[1:]))
+            if hits.size:
+                k = int(hits[0]) + 1
+                return node, [Edge(states[: k + 1], k, k * dt * prop.hold_rate(u),
+                                   float(np.abs(u).max()), True, control=u.copy())]
+        return None
+
+    def report(self) -> dict:
+        return {"one_step": {"tries": self.tries}}
+
+    def note(self) -> str | None:
+        return None
+
+
+def test_a_connection_written_outside_plugs_into_the_loop(limited):
+    """The learned steering alone (every planner connection off) with the one-step
+    connection plugged in: plans finish by its edge, a held input that re-simulates
+    independently; up to that edge the tree is the one the planner grows without it."""
+    off = {"goal_connect": False, "goal_funnel": 0, "goal_lqr": False, "control_edges": False}
+    plugged = _planner(limited, (OneStepConnection,), **off)
+    alone = _planner(limited, **off)
+    finished = 0
+    for seed in range(6):
+        p = plugged.solve(TerminationCondition(None, 1500), seed)
+        if p.extra["connection"] is None:  # unsolved, or solved by the steering itself
+            continue
+        finished += 1
+        assert p.extra["connection"] == "one_step" and p.extra["goal_connected"] and p.solved
+        assert p.extra["one_step"]["tries"] >= 1
+        last = p.path_nodes[-1]
+        u = p.tree.controls[last]
+        assert np.isfinite(u).all() and abs(u[0]) <= U_MAX  # a held input ends the path
+        d = p.to_dict()
+        check_plan_file(d)  # independent RK4 of every edge, costs, H* = 0 on extremals
+        states, inputs, _ = pendulum_edge(d["path"][-1], d["time_weight"], d["dt"], U_MAX)
+        assert np.all(inputs == u[0])
+        ang = np.mod(states[-1, 0] + np.pi, 2 * np.pi) - np.pi
+        assert np.hypot(ang, states[-1, 1]) <= 0.05 + 1e-12  # ends in the goal ball
+        # the tree before the connection is the planner's own: the same seed without the
+        # connection grows the same nodes up to that iteration
+        # (it runs that iteration's expansion, which the connection cut short)
+        b = alone.solve(TerminationCondition(None, p.iterations), seed)
+        m = p.tree.n_nodes - 1  # the nodes before the connection's edge
+        assert b.tree.n_nodes in (m, m + 1)
+        np.testing.assert_array_equal(b.tree.states[:m], p.tree.states[:m])
+    assert finished >= 3
+
+
+def test_each_steering_strategy_alone(limited):
+    """Against a tree and a problem, without the loop: the learned steering and random
+    controls each propose (parent, edge) with the edge starting at the parent's state and
+    lasting its steps, or no edge with a reason from OUTCOMES; they add nothing to the
+    tree."""
+    planner = _planner(limited, control_edges=True)
+    rng = np.random.default_rng(0)
+    run = planner.start(rng)
+    tree = run.tree
+    made = {"learned": 0, "control": 0}
+    for steering in (planner.learned, planner.controls):
+        planner.controls.batch = None  # the random-control edges here, not in a batch
+        for i in range(60):
+            target = rng.uniform(limited.system.state_low, limited.system.state_high)
+            parent, edge = steering.steer(rng, tree, target, to_goal=i % 5 == 0)
+            assert tree.data.n_nodes == 1 + made["learned"] + made["control"]
+            if edge is None:
+                assert steering.rejected in OUTCOMES
+                continue
+            np.testing.assert_array_equal(edge.traj[0, :2], tree.states[parent])
+            assert len(edge.traj) == edge.steps + 1
+            assert (edge.control is None) == (steering.kind == "learned")
+            tree.add(parent, edge)
+            made[steering.kind] += 1
+    assert made["learned"] > 0 and made["control"] > 0

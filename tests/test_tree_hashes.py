@@ -1,0 +1,56 @@
+"""Same seed, same tree: the hashes of fixed small plans (tests/tree_cases.py), recorded from
+the planner before it was split into a loop and strategies (commit e14ddd1).
+
+A change that moves a tree (a different random-number order, another choice of parent, a
+rounding) fails here. When the move is intended, say so in the commit and record the new
+hash with the reason; a refactor must leave every hash as it is.
+
+Each case also asserts what it exercises (edges by kind, the connections switched on and the
+one that reached the goal), so that a case that stops exercising its strategy is noticed
+rather than silently hashing a trivial tree.
+"""
+
+from __future__ import annotations
+
+import pytest
+from tests.tree_cases import CASES, fit_model, plan_case, summary, tree_hash
+
+# name: (tree hash, what the plan exercised) as the planner at e14ddd1 grew them
+EXPECTED = {
+    "pendulum": ("680ff873ae2cb372", {"connection": "funnel", "funnel_states": 25293}),
+    "pendulum_auto": ("f5098694130d4cd6", {"connection": "shooting",
+                                           "switched": {"lqr": 851, "shooting": 851}}),
+    "pendulum_u1": ("6ffe5871d2966e0e", {"connection": "lqr",
+                                         "edges_by": {"learned": 204, "control": 888},
+                                         "switched": {"controls": 30, "lqr": 548}}),
+    "pendulum_u1_obstacle": ("c314f55558930e9e", {"edges_by": {"learned": 5, "control": 695},
+                                                  "lqr": {"tries": 101}}),
+    "cartpole": ("cbe2e45a342e552b", {"nodes": 501}),
+    "acrobot": ("a115ad656a07d5c3", {"nodes": 537}),
+    "quadrotor": ("b73adeaefa0b1acf", {"edges_by": {"learned": 59, "control": 520}}),
+    "sparse_rrt_cartpole": ("d12ecb75032483b4", {"connection": "lqr", "lqr": {"tries": 10},
+                                                 "edges_by": {"learned": 102,
+                                                              "control": 832}}),
+    "sparse_rrt_acrobot": ("1bcb2e9e569edb9f", {"edges_by": {"learned": 65, "control": 1372},
+                                                "lqr": {"tries": 25}}),
+}
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    """Each case's model, fitted once (cases with equal model settings share it)."""
+    root = tmp_path_factory.mktemp("tree_models")
+    return {c.name: fit_model(c, root / str(i)) for i, c in enumerate(CASES)}
+
+
+def test_every_case_has_a_recorded_hash():
+    assert sorted(EXPECTED) == sorted(c.name for c in CASES)
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
+def test_the_tree_is_the_recorded_one(models, case):
+    plan = plan_case(case, models[case.name])
+    got = summary(plan)
+    want_hash, exercised = EXPECTED[case.name]
+    assert {k: got[k] for k in exercised} == exercised
+    assert tree_hash(plan) == want_hash
