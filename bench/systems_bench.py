@@ -56,7 +56,7 @@ QUICK = {
 TARGETS = {"double_integrator": 1.0, "cartpole": 1.0, "acrobot": 0.9}
 # problems of other planners' suites (examples/, typed in through the public API) and their
 # anchors: sparse_rrt's SST, median CPU seconds to the first solution on this machine
-# (/work/shared/problems/EXTERNAL.md); `make bench-external`
+# (docs/external_problems.md); `make bench-external`
 EXTERNAL = {
     "examples.sparse_rrt_cartpole:make_cartpole": 9.6,
     "examples.sparse_rrt_acrobot:make_acrobot": 2.2,

@@ -1,6 +1,7 @@
 """The transcriptions of sparse_rrt's acrobot and cart-pole (examples/sparse_rrt_*.py) against
-the equations of /work/shared/problems/EXTERNAL.md, written out again here in numpy with the
-constants as literals, independently of the sympy definitions.
+the equations of sparse_rrt's cart_pole.cpp and two_link_acrobot.cpp (described in
+docs/external_problems.md), written out again here in numpy with the constants as literals,
+independently of the sympy definitions.
 
 Checks: equilibria, the input-affine split (a(x) + B(x) u equal to the written equations at
 random states and inputs, for the generated kernels and for the sympy expressions), a few
@@ -54,10 +55,10 @@ def acrobot(ac_mod):
     return ac_mod.make_acrobot()
 
 
-# --------------------------------------------------------------------------- EXTERNAL.md by hand
+# ----------------------------------------------------------------- sparse_rrt's equations by hand
 
 def cartpole_ref(x: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """EXTERNAL.md cart_pole, states (N, 4) = (x, v, theta, w), force (N,)."""
+    """sparse_rrt's cart_pole, states (N, 4) = (x, v, theta, w), force (N,)."""
     inertia, ell, big_m, m, g = 10.0, 2.5, 10.0, 5.0, 9.8
     _, v, th, w = x.T
     d = (big_m + m) * (inertia + m * ell**2) - m**2 * ell**2 * np.cos(th) ** 2
@@ -70,7 +71,7 @@ def cartpole_ref(x: np.ndarray, f: np.ndarray) -> np.ndarray:
 
 def cartpole_energy(x: np.ndarray) -> np.ndarray:
     """Kinetic energy with mass matrix [[M + m, m L cos], [m L cos, I + m L^2]] plus
-    V = -m g L cos(theta) (the Lagrangian whose equations EXTERNAL.md writes out)."""
+    V = -m g L cos(theta) (the Lagrangian of sparse_rrt's equations)."""
     inertia, ell, big_m, m, g = 10.0, 2.5, 10.0, 5.0, 9.8
     _, v, th, w = x.T
     kin = 0.5 * ((big_m + m) * v**2 + 2 * m * ell * np.cos(th) * v * w
@@ -79,7 +80,7 @@ def cartpole_energy(x: np.ndarray) -> np.ndarray:
 
 
 def acrobot_ref(x: np.ndarray, tau: np.ndarray, damping: float = 0.1) -> np.ndarray:
-    """EXTERNAL.md two_link_acrobot, states (N, 4) = (theta1, theta2, theta1', theta2')."""
+    """sparse_rrt's two_link_acrobot, states (N, 4) = (theta1, theta2, theta1', theta2')."""
     m, ell, lc, lc2, l2, i1, i2, g = 1.0, 1.0, 0.5, 0.25, 1.0, 0.2, 1.0, 9.8
     th1, th2, dth1, dth2 = x.T
     t1, t2 = th1 - np.pi / 2, th2

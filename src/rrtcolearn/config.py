@@ -1,7 +1,7 @@
 """Configuration: pydantic models (unknown keys rejected), TOML in, resolved TOML out.
 
 Defaults reproduce the paper's pendulum experiment; where the paper is silent the choice is
-documented in the README (goal bias, validity threshold).
+documented in docs/configuration.md and docs/method.md (goal bias, validity threshold).
 """
 
 from __future__ import annotations

@@ -199,7 +199,7 @@ truncated and random-control pendulum plans; the test suite asserts < 1e-9). Wha
 legitimately differ is rounding: another machine's libm may round sin or cos differently in
 the last place, and one unit in the last place of an edge's start moves its end by at most
 1e-13 on the pendulum's plans (edges up to 19 s). 1e-9 leaves a factor of 1e4 for that and is
-a thousandth of the 1e-6 the README promises; an edited number, or another costate, step or
+a thousandth of the 1e-6 docs/formats.md promises; an edited number, or another costate, step or
 system, moves an end by orders of magnitude more."""
 
 _STATUSES = ("exact", "approximate", "timeout")

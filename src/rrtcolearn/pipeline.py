@@ -647,7 +647,7 @@ PLAN_SCHEMA = 1
 
 
 def write_plan(p: Plan, path: str | Path) -> None:
-    """Write the plan file (JSON, see README "The plan file") with its checksum."""
+    """Write the plan file (JSON, see docs/formats.md) with its checksum."""
     write_checked_json(path, {"format": PLAN_FORMAT, "schema_version": PLAN_SCHEMA,
                               "package_version": __version__, **p.to_dict()})
 

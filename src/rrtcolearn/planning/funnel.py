@@ -4,7 +4,7 @@ Every state x on such an extremal reaches the goal exactly along it, with the co
 there; the states of a few thousand of them fill a four-dimensional neighbourhood of the
 paths that end at the goal (three costate directions on H* = 0 and the time to go). Where
 the boundary value problem into the goal is ill-conditioned, as into the acrobot's upright,
-Newton's method started from U's guess does not converge (README), but started from a
+Newton's method started from U's guess does not converge (docs/method.md), but started from a
 funnel extremal that passes near a tree node it often does: the funnel's solution is moved
 to the node in small steps (continuation), each solved backwards from the goal, where the unknowns
 are the goal's costate and the duration; a last forward solve from the node itself
@@ -66,7 +66,7 @@ class GoalFunnel:
         there has arrived. ``offset`` is the goal test's state-minus-goal (angles wrapped
         when it wraps them). States closer than ``min_duration`` to the goal are dropped:
         where little time is left, the boundary value problem from near them can be too
-        ill-conditioned to solve (the acrobot's, README). ``box`` is the state constraints
+        ill-conditioned to solve (the acrobot's, docs/method.md). ``box`` is the state constraints
         (low, high), the sampling box by default."""
         n = system.n_states
         goal = np.asarray(goal, dtype=np.float64)

@@ -110,7 +110,7 @@ def newton(system: System, x0: np.ndarray, lam0: np.ndarray, duration0: float,
         # Jacobian: costates by central differences (relative steps), duration from the
         # state's rate (H* does not depend on it). Forward differences are not enough where
         # the extremals are sensitive: into the acrobot's upright their truncation error
-        # made the Newton step no descent direction (README)
+        # made the Newton step no descent direction (docs/method.md)
         eps = _EPS * np.maximum(1.0, np.abs(v[:n]))
         probe = np.repeat(v[None], 2 * n, axis=0)
         probe[np.arange(n), np.arange(n)] += eps

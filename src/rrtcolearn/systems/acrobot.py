@@ -14,7 +14,7 @@ The state box (ours; the notes state none) is theta1' in [-8, 8], theta2' in [-1
 rad/s: upright lies 49 J above hanging, so the rigid arm passes the bottom on its way up at
 |theta1'| = sqrt(2 * 49 / 4.66) = 4.6 rad/s (4.66 kg m^2 its inertia about the shoulder);
 a box of +-4 and +-8 excluded that swing, and the extremals that end at the upright run
-faster still (README).
+faster still (docs/systems.md).
 """
 
 from __future__ import annotations

@@ -12,9 +12,9 @@ pole mass m_p = 1 kg, pole length l = 0.5 m, g = 9.81 m/s^2. With D = m_c + m_p 
 which is input-affine in f. The running cost is w + R f^2 / 2 with R = 1 (identity). It shipped
 with R = 0.01 while Alg. 2's cost bound was the paper's 2, which left R = 1 segments too weak
 to swing the pole over; the derived cost bound scales with R (4352 here against 43.6 at
-R = 0.01), and with R = 1 20 of 20 seeded swing-ups are solved within 60 s (README). Standard
-swing-up query: from hanging at the origin (0, 0, 0, 0) to upright at the cart's origin
-(0, pi, 0, 0).
+R = 0.01), and with R = 1 20 of 20 seeded swing-ups are solved within 60 s
+(docs/systems.md). Standard swing-up query: from hanging at the origin (0, 0, 0, 0) to
+upright at the cart's origin (0, pi, 0, 0).
 """
 
 from __future__ import annotations
