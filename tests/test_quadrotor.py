@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tests.references import rk4
 
 from rrtcolearn.integrate import rollout
 from rrtcolearn.systems import list_systems, make, recommended_config
@@ -50,19 +51,6 @@ def hand_rhs(z: np.ndarray, w: float) -> np.ndarray:
     lam_dot = np.array([0.0, 0.0, f * (lam[3] * np.cos(th) + lam[4] * np.sin(th)) / M,
                         -lam[0], -lam[1], -lam[2]])
     return np.concatenate([hand_dynamics(x, u), lam_dot, [w + 0.5 * u @ u]])
-
-
-def rk4(f, y0: np.ndarray, dt: float, steps: int) -> np.ndarray:
-    y = np.array(y0, dtype=float)
-    out = [y.copy()]
-    for _ in range(steps):
-        k1 = f(y)
-        k2 = f(y + 0.5 * dt * k1)
-        k3 = f(y + 0.5 * dt * k2)
-        k4 = f(y + dt * k3)
-        y = y + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-        out.append(y.copy())
-    return np.array(out)
 
 
 # --------------------------------------------------------------------------- definition
