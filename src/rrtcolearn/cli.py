@@ -810,6 +810,9 @@ def track(
     start_error: Annotated[float, typer.Option(
         "--start-error", help="start state off by a uniform draw within +- this fraction of "
         "each state's box width")] = 0.0,
+    state_weight: Annotated[float, typer.Option(
+        "--state-weight", help="multiplies the state weight Q (1: Bryson's rule from the "
+        "boxes, as the goal LQR)")] = 1.0,
     seed: SeedOpt = None,
     plot: Annotated[Path | None, typer.Option(
         "--plot", help="write the figure of the nominal and the runs' spread (PNG)")] = None,
@@ -825,6 +828,8 @@ def track(
             raise ConfigError(f"--rollouts {rollouts}: give at least 1")
         if not (noise >= 0 and start_error >= 0):
             raise ConfigError("--noise and --start-error must not be negative")
+        if not state_weight > 0:
+            raise ConfigError(f"--state-weight {state_weight}: give a positive factor")
         d, system = _checked_plan(plan_file, system_name)
         truth = None
         if true_system is not None:
@@ -835,7 +840,7 @@ def track(
             except ValueError as exc:
                 raise ConfigError(f"--true-system: {exc}") from None
             tracking.check_truth(system, truth)
-        c = tracking.TrackingController.build(system, d)
+        c = tracking.TrackingController.build(system, d, state_weight=state_weight)
         runs = tracking.rollouts(c, rollouts, truth=truth, noise=noise,
                                  start_error=start_error, seed=0 if seed is None else seed)
         rows = [tracking.summarise(c, r) for r in runs]
@@ -843,7 +848,8 @@ def track(
 
         table = Table(title=f"track {plan_file}: {rollouts} runs on "
                       f"{true_system or 'the model'}, noise {noise:g}, start error "
-                      f"{start_error:g}, seed {0 if seed is None else seed}")
+                      f"{start_error:g}, state weight {state_weight:g}, seed "
+                      f"{0 if seed is None else seed}")
         table.add_column("")
         for name in ("open-loop", "tracked"):
             table.add_column(name, justify="right")

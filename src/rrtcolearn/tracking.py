@@ -179,11 +179,12 @@ class TrackingController:
     terminal: str
 
     @classmethod
-    def build(cls, system: System, plan, problem: PlanningProblem | None = None
-              ) -> TrackingController:
+    def build(cls, system: System, plan, problem: PlanningProblem | None = None, *,
+              state_weight: float = 1.0) -> TrackingController:
         """The controller of a plan (a `Plan` or a plan file's content) on ``system`` (the
         plan's model); ``problem`` defaults to the one the plan records
-        (`evaluate.plan_problem`)."""
+        (`evaluate.plan_problem`). ``state_weight`` multiplies the running Q (1: Bryson's
+        rule as the goal LQR uses it; larger tracks more stiffly for the same inputs)."""
         problem = plan_problem(system, plan) if problem is None else problem
         nominal = nominal_trajectory(system, plan)
         dt = nominal.dt
@@ -194,9 +195,10 @@ class TrackingController:
         if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
             raise ConfigError("the linearisation along the plan is not finite")
         Q, R = tracking_weights(problem, dt)
+        Q = state_weight * Q
         goal = build_goal_lqr(problem, dt, np.diag(_input_weight(system)))
         if isinstance(goal, str):
-            P_final, terminal = Q / dt, f"diag(1/h^2) ({goal})"
+            P_final, terminal = Q / (dt * state_weight), f"diag(1/h^2) ({goal})"
         else:
             P_final, terminal = goal.P, "the goal LQR's Riccati solution"
         K, P = riccati_gains(A, B, Q, R, P_final)
