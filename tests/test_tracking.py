@@ -3,6 +3,7 @@ follower would, and the track / animate commands."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
@@ -54,7 +55,7 @@ def _replay(f, t, x0, inputs, substeps=20):
 
     x = np.array(x0, dtype=float)
     grid = np.unique(t)
-    for a, b in zip(grid[:-1], grid[1:], strict=True):
+    for a, b in itertools.pairwise(grid):
         h = (b - a) / substeps
         for i in range(substeps):
             tau = a + i * h
@@ -164,12 +165,11 @@ def test_tracking_on_the_exact_model_reproduces_the_plan(controller):
 
 
 def test_tracking_corrects_a_start_error_open_loop_does_not(controller):
-    c, d = controller
+    c, _ = controller
     open_loop, tracked = rollouts(c, 20, start_error=0.01, noise=1e-3, seed=1)
-    end = c.nominal.state[-1]
     ol = np.linalg.norm(c.deviation(open_loop.states[:, -1], c.nominal.steps), axis=1)
     tr = np.linalg.norm(c.deviation(tracked.states[:, -1], c.nominal.steps), axis=1)
-    assert np.median(tr) < 0.5 * np.median(ol), (np.median(tr), np.median(ol), end)
+    assert np.median(tr) < 0.5 * np.median(ol), (np.median(tr), np.median(ol))
     assert np.all(np.abs(tracked.inputs) <= 1.0 + 1e-12)  # clipped to the box
 
 
@@ -258,6 +258,7 @@ def test_shipped_geometries_draw_the_bodies():
     np.testing.assert_allclose(link[:, 1], [[0.0, 1.0], [1.0, 0.0]], atol=1e-12)  # up, right
     cart, pole = cartpole.geometry(np.array([[1.0, 0.0, 0.0, 0.0]]))
     np.testing.assert_allclose(pole[0, 1], [1.0, -0.5])  # hanging below the cart
+    np.testing.assert_allclose(cart[0].mean(axis=0)[0], 1.0 + 0.4 / 5)  # closed: 5 corners
     (arm,) = acrobot.geometry(np.array([[np.pi, 0.0, 0.0, 0.0]]))
     np.testing.assert_allclose(arm[0, -1], [0.0, 3.0], atol=1e-12)  # upright: l1 + l2
     frame = quadrotor.geometry(np.array([[0.0, 1.0, 0.0, 0, 0, 0]]))[0]
