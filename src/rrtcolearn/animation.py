@@ -67,11 +67,11 @@ def animate(system: System, t: np.ndarray, states: np.ndarray, out: str | Path, 
         polylines = shape(np.asarray(states, float))
         pts = np.concatenate([p.reshape(-1, 2) for p in polylines])
         lo, hi = pts.min(axis=0), pts.max(axis=0)
-        pad = 0.1 * max(float((hi - lo).max()), 1e-3)
+        centre, half = 0.5 * (lo + hi), 0.55 * max(float((hi - lo).max()), 1e-3)
         fig, ax = plt.subplots(figsize=(4, 4))
-        ax.set_aspect("equal")
-        ax.set_xlim(lo[0] - pad, hi[0] + pad)
-        ax.set_ylim(lo[1] - pad, hi[1] + pad)
+        ax.set_aspect("equal")  # a square view: the bodies undistorted
+        ax.set_xlim(centre[0] - half, centre[0] + half)
+        ax.set_ylim(centre[1] - half, centre[1] + half)
         ax.grid(alpha=0.3)
         tip = polylines[-1][:, -1]
         (trail,) = ax.plot([], [], color="0.6", lw=1)
@@ -101,7 +101,7 @@ def animate(system: System, t: np.ndarray, states: np.ndarray, out: str | Path, 
                 c.set_data([t[k]], [states[k, j]])
             axes[0, 0].set_title(f"{title}  t = {t[k]:.2f} s".strip(), fontsize=9)
             return cursors
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.95))  # room for the title's time
     anim = animation.FuncAnimation(fig, draw, frames=len(frames), blit=False)
     writer = animation.PillowWriter(fps=fps) if suffix == ".gif" else \
         animation.FFMpegWriter(fps=fps)
