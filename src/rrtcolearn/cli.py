@@ -760,7 +760,7 @@ def export(
         header = [
             f"rrtcolearn trajectory: system {system.name}, {system.n_states} states, "
             f"{system.n_inputs} inputs, integration step {d['dt']} s",
-            "units: t in seconds; states, inputs and costates (lambda_, blank/nan on "
+            "units: t in seconds; states, inputs and costates (lambda_, nan on "
             "random-control edges) in the units of the system's definition",
             "inputs between rows: continuous within an extremal edge (interpolate linearly), "
             "held within a random-control edge; where edges meet, two rows with the same t: "
