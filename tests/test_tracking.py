@@ -101,7 +101,9 @@ def test_exported_csv_replays_to_the_plans_end_pendulum(limited_run):
 
 def test_exported_samples_replay_on_the_shipped_cartpole():
     """A cart-pole path of extremal edges and a held-input edge, the costate drawn afresh at
-    each join (as the planner draws them), exported and replayed."""
+    each join (as the planner draws them), exported and replayed. (A planned swing-up ends
+    on the unstable upright, where an open-loop replay's small errors grow: docs/formats.md
+    gives its figures.)"""
     system = make("cartpole")
     rng = np.random.default_rng(0)
     dt, w, x = 0.01, 1.0, np.zeros(4)
