@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test fuzz bench bench-anytime bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup lint clean-venv
+.PHONY: run test fuzz bench bench-anytime bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup bench-tracking lint clean-venv
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -61,6 +61,11 @@ bench-limits: $(STAMP)
 # (about a minute; makes runs/pendulum-swingup first if it holds no model)
 bench-startup: $(STAMP)
 	$(BIN)/python bench/startup.py
+
+# plans tracked by time-varying LQR against open-loop on systems 10% heavier, with noise and a
+# start error, 100 runs each (makes the five plans into runs/tracking first if missing)
+bench-tracking: $(STAMP)
+	$(BIN)/python bench/tracking_bench.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench

@@ -26,18 +26,21 @@ def test_samples_follow_the_edges(paper_model, plan_dict):
     s = sample_path(paper_model.system, plan_dict)
     d = plan_dict
     steps = sum(round(e["duration"] / d["dt"]) for e in d["path"])
-    assert len(s["t"]) == steps + 1
-    np.testing.assert_allclose(np.diff(s["t"]), d["dt"])
+    # every step's sample, and both sides of each join of two edges (two rows, one time)
+    assert len(s["t"]) == steps + len(d["path"])
+    gaps = np.diff(s["t"])
+    assert np.count_nonzero(gaps == 0) == len(d["path"]) - 1
+    np.testing.assert_allclose(gaps[gaps > 0], d["dt"])
     np.testing.assert_allclose(s["state"][0], d["start"])
     np.testing.assert_allclose(s["state"][-1], d["path"][-1]["to"], atol=1e-9)
-    # each edge's samples start at its stored node and follow an independent RK4
+    # each edge's samples run from its stored node to its end along an independent RK4
     first = 0
     for i, e in enumerate(d["path"]):
-        rows = np.flatnonzero(s["edge"][:-1] == i)
+        rows = np.flatnonzero(s["edge"] == i)
         assert rows[0] == first
         states, u, _ = pendulum_edge(e, d["time_weight"], d["dt"])
-        np.testing.assert_allclose(s["state"][rows], states[:-1], atol=1e-9)
-        np.testing.assert_allclose(s["input"][rows, 0], u[:-1], atol=1e-9)
+        np.testing.assert_allclose(s["state"][rows], states, atol=1e-9)
+        np.testing.assert_allclose(s["input"][rows, 0], u, atol=1e-9)
         np.testing.assert_allclose(s["costate"][rows[0]], e["costate"])
         first = rows[-1] + 1
 
@@ -45,8 +48,12 @@ def test_samples_follow_the_edges(paper_model, plan_dict):
 def test_coarser_step_is_every_kth_sample(paper_model, plan_dict):
     fine = sample_path(paper_model.system, plan_dict)
     coarse = sample_path(paper_model.system, plan_dict, dt=0.05)
-    np.testing.assert_allclose(coarse["state"][:-1], fine["state"][:-1:5])
-    np.testing.assert_allclose(coarse["state"][-1], fine["state"][-1])
+    # every 5th step of the path's time, and each edge's first and last sample
+    steps = np.rint(fine["t"] / plan_dict["dt"]).astype(int)
+    ends = np.r_[True, np.diff(fine["edge"]) != 0] | np.r_[np.diff(fine["edge"]) != 0, True]
+    keep = (steps % 5 == 0) | ends
+    np.testing.assert_array_equal(coarse["state"], fine["state"][keep])
+    np.testing.assert_array_equal(coarse["edge"], fine["edge"][keep])
     with pytest.raises(ValueError, match="whole multiple"):
         sample_path(paper_model.system, plan_dict, dt=0.015)
 
@@ -57,7 +64,8 @@ def test_export_command_writes_csv_and_npz(tiny_run):  # noqa: F811
     assert d["path"], "the tiny run's plan has a path to export"
     result = invoke("export", str(plan_file), "--dt", "0.02")
     assert result.exit_code == 0, result.output
-    lines = (tiny_run / "plan.csv").read_text().splitlines()
+    lines = [line for line in (tiny_run / "plan.csv").read_text().splitlines()
+             if not line.startswith("#")]  # the header says what the columns hold
     assert lines[0] == "t,theta,omega,torque,lambda_theta,lambda_omega,edge"
     rows = np.array([[float(v) for v in line.split(",")] for line in lines[1:]])
     np.testing.assert_allclose(rows[0, 1:3], d["start"])

@@ -128,9 +128,15 @@ def sample_path(system: System, plan, dt: float | None = None) -> dict[str, np.n
     """Samples along a plan's path (a `Plan` or a plan file's content), re-simulated edge by
     edge from each edge's stored start node at the plan's integration step: ``t`` (K,),
     ``state`` (K, n), ``input`` (K, m), ``costate`` (K, n; NaN on random-control edges) and
-    ``edge`` (K,), the path edge each sample starts (the last sample is the path's end).
-    ``dt`` (default the plan's step) must be a whole multiple of the plan's step: the
-    samples are every such step of the one integration the plan was checked with."""
+    ``edge`` (K,), the path edge each sample belongs to.
+
+    Every edge gives its first and its last sample, and between them every ``dt`` (default the
+    plan's step; a whole multiple of it) of the path's time. Where two edges meet there are
+    two rows with the same time: the end of the one edge (the left limit of the input) and the
+    start of the next (its right limit; the costate is drawn afresh there, so the input
+    jumps). A follower that interpolates the inputs linearly between rows, as ``numpy.interp``
+    does, then never blends two edges' inputs: within an extremal the input is continuous,
+    within a random-control edge it is held."""
     edges, w, step = _plan_fields(plan)
     dt = step if dt is None else float(dt)
     every = round(dt / step)
@@ -140,15 +146,43 @@ def sample_path(system: System, plan, dt: float | None = None) -> dict[str, np.n
     if not edges:
         raise ValueError("the plan has no path to sample (it starts in the goal region or "
                          "was not solved and found no node nearer the goal)")
-    parts = [edge_trajectory(system, e, w, step) for e in edges]
-    state = np.concatenate([p.states[:-1] for p in parts] + [parts[-1].states[-1:]])
-    inputs = np.concatenate([p.inputs[:-1] for p in parts] + [parts[-1].inputs[-1:]])
-    costate = np.concatenate([p.costates[:-1] for p in parts] + [parts[-1].costates[-1:]])
-    edge = np.concatenate([np.full(len(p.states) - 1, i) for i, p in enumerate(parts)]
-                          + [np.array([len(parts) - 1])])
-    keep = np.r_[np.arange(0, len(state) - 1, every), len(state) - 1]
-    return {"t": keep * step, "state": state[keep], "input": inputs[keep],
-            "costate": costate[keep], "edge": edge[keep]}
+    parts: dict[str, list] = {"t": [], "state": [], "input": [], "costate": [], "edge": []}
+    offset = 0  # steps of the path before this edge
+    for i, e in enumerate(edges):
+        traj = edge_trajectory(system, e, w, step)
+        steps = len(traj.states) - 1
+        local = np.arange(steps + 1)
+        keep = local[((offset + local) % every == 0) | (local == 0) | (local == steps)]
+        parts["t"].append((offset + keep) * step)
+        parts["state"].append(traj.states[keep])
+        parts["input"].append(np.asarray(traj.inputs)[keep])
+        parts["costate"].append(traj.costates[keep])
+        parts["edge"].append(np.full(len(keep), i))
+        offset += steps
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def plan_problem(system: System, plan, goal_fn=None) -> PlanningProblem:
+    """The `PlanningProblem` a plan (file content or `Plan`) records: its start, goal and goal
+    test (as `check_plan` measures it; ``goal_fn`` for a goal function of one's own), its
+    ``u_max``, obstacles and state constraints. `PlanCheckError` if the plan is malformed or
+    its goal test is a function it cannot hold and none is given."""
+    from rrtcolearn.planning.problem import PlanningProblem, obstacle_checker, state_bounds
+
+    f = _parse_plan(system, plan if isinstance(plan, dict) else plan.to_dict(),
+                    PLAN_CHECK_RTOL)
+    problem, how = _goal_problem(system, f, goal_fn)
+    if problem is None:
+        _fail(f"the plan's goal test is {how}: give the goal function")
+    cfg = f["config"] or {}
+    try:
+        low, high = state_bounds(system, cfg.get("state_low"), cfg.get("state_high"))
+    except (TypeError, ValueError) as exc:
+        _fail(f"config.plan: {exc}")
+    return PlanningProblem(system, f["start"], f["goal"], f["tol"], u_max=f["u_max"],
+                           validity=obstacle_checker(system, f["obstacles"]),
+                           wrap_goal=problem.wrap_goal, state_low=low, state_high=high,
+                           goal_weights=problem.goal_weights, goal_fn=problem.goal_fn)
 
 
 def replay(problem, plan) -> dict:

@@ -20,14 +20,29 @@ faster still (docs/systems.md).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
+import numpy as np
 import sympy
 
+from rrtcolearn.systems.parameters import with_parameters
 from rrtcolearn.systems.symbolic import SymbolicSystem, build_system
 
+LINKS = (1.0, 2.0)  # m, l1 and l2 as drawn
 
-def make_acrobot() -> SymbolicSystem:
-    """The acrobot of Tedrake's notes (m 1, 1; l 1, 2; lc 0.5, 1; Ic 0.083, 0.33)."""
+
+def geometry(x: np.ndarray) -> list[np.ndarray]:
+    """The arm of states x (K, 4) as one polyline (K, 3, 2) in metres, shoulder, elbow and
+    tip, theta1 = 0 hanging down (`rrtcolearn.animation`)."""
+    q1, q12 = x[:, 0], x[:, 0] + x[:, 1]
+    elbow = np.stack([LINKS[0] * np.sin(q1), -LINKS[0] * np.cos(q1)], axis=1)
+    tip = elbow + np.stack([LINKS[1] * np.sin(q12), -LINKS[1] * np.cos(q12)], axis=1)
+    return [np.stack([np.zeros_like(elbow), elbow, tip], axis=1)]
+
+
+def make_acrobot(parameters: Mapping[str, float] | None = None) -> SymbolicSystem:
+    """The acrobot of Tedrake's notes (m 1, 1; l 1, 2; lc 0.5, 1; Ic 0.083, 0.33);
+    ``parameters`` replaces some by name (``{"m1": 1.1}``; l2 enters only the drawing)."""
     q1, q2, dq1, dq2, u = sympy.symbols("theta1 theta2 dtheta1 dtheta2 u", real=True)
     m1, m2, l1, lc1, lc2, ic1, ic2, g = sympy.symbols("m1 m2 l1 lc1 lc2 Ic1 Ic2 g",
                                                        positive=True)
@@ -50,12 +65,13 @@ def make_acrobot() -> SymbolicSystem:
         "acrobot", states=[q1, q2, dq1, dq2], inputs=[u],
         drift=[dq1, dq2, accel[0], accel[1]],
         input_matrix=[[0], [0], [b[0]], [b[1]]], input_weight=[[1]],
-        parameters={m1: 1.0, m2: 1.0, l1: 1.0, lc1: 0.5, lc2: 1.0, ic1: 0.083, ic2: 0.33,
-                    g: 9.81},
+        parameters=with_parameters({m1: 1.0, m2: 1.0, l1: LINKS[0], lc1: 0.5, lc2: 1.0,
+                                    ic1: 0.083, ic2: 0.33, g: 9.81}, parameters),
         state_low=[-math.pi / 2, -math.pi, -8.0, -16.0],
         state_high=[3 * math.pi / 2, math.pi, 8.0, 16.0],
         angle_dims=[0, 1], state_names=["theta1", "theta2", "theta1_dot", "theta2_dot"],
         input_names=["elbow_torque"],
         description="Acrobot swing-up (Tedrake/Spong parameters), theta1 = 0 hanging down",
-        defaults={"start": [0.0, 0.0, 0.0, 0.0], "goal": [math.pi, 0.0, 0.0, 0.0]},
+        defaults={"start": [0.0, 0.0, 0.0, 0.0], "goal": [math.pi, 0.0, 0.0, 0.0],
+                  "geometry": "rrtcolearn.systems.acrobot:geometry"},
     )

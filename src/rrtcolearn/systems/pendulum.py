@@ -26,6 +26,7 @@ the slope of H* along the line, dH*/dl_om = omega': <= 0 at the larger root.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -33,7 +34,7 @@ import numpy as np
 if TYPE_CHECKING:
     from rrtcolearn.systems.symbolic import SymbolicSystem
 
-__all__ = ["make_pendulum", "phi_inverse", "phi_line"]
+__all__ = ["geometry", "make_pendulum", "phi_inverse", "phi_line"]
 
 
 def phi_line(x, p):
@@ -53,15 +54,30 @@ def phi_inverse(x, lam, xdot):
                             (sympy.atan(lam[0]), True)),)
 
 
-def make_pendulum() -> SymbolicSystem:
+def geometry(x: np.ndarray) -> list[np.ndarray]:
+    """The pendulum of states x (K, 2) as one polyline (K, 2, 2), pivot to bob of unit
+    length, theta = 0 upright (`rrtcolearn.animation`)."""
+    bob = np.stack([np.sin(x[:, 0]), np.cos(x[:, 0])], axis=1)
+    return [np.stack([np.zeros_like(bob), bob], axis=1)]
+
+
+def make_pendulum(parameters: Mapping[str, float] | None = None) -> SymbolicSystem:
     """The paper's pendulum: theta0 ~ U(-3pi/2, pi/2), omega0 ~ U(-pi, pi),
-    phi ~ U(-pi/2, 3pi/2)."""
+    phi ~ U(-pi/2, 3pi/2). Its dynamics are the unit pendulum m l^2 theta'' = m g l
+    sin(theta) + u with m = l = g = 1; ``parameters`` replaces some by name
+    (``{"m": 1.1, "l": 1.1}``: theta'' = (g / l) sin(theta) + u / (m l^2))."""
     # imported on use: sympy takes a while to import, and the registry imports this module
     import sympy
 
+    from rrtcolearn.systems.parameters import with_parameters
     from rrtcolearn.systems.symbolic import CostateParametrisation, build_system
 
     theta, omega, u = sympy.symbols("theta omega u", real=True)
+    mass, length, g = sympy.symbols("m l g", positive=True)
+    # whole numbers by default: the expressions reduce to the paper's exactly
+    values = with_parameters({mass: 1, length: 1, g: 1}, parameters)
+    accel = (g / length * sympy.sin(theta)).subs(values)
+    gain = (1 / (mass * length**2)).subs(values)
     phi = CostateParametrisation(
         names=("phi",),
         low=(-0.5 * np.pi,),
@@ -74,8 +90,8 @@ def make_pendulum() -> SymbolicSystem:
         "pendulum",
         states=[theta, omega],
         inputs=[u],
-        drift=[omega, sympy.sin(theta)],
-        input_matrix=[[0], [1]],
+        drift=[omega, accel],
+        input_matrix=[[0], [gain]],
         input_weight=[[1]],
         state_low=[-1.5 * np.pi, -np.pi],
         state_high=[0.5 * np.pi, np.pi],
@@ -83,6 +99,7 @@ def make_pendulum() -> SymbolicSystem:
         state_names=("theta", "omega"),
         input_names=("torque",),
         description="Pendulum swing-up, x = (theta, omega), f = (omega, sin(theta) + u)",
-        defaults={"start": [-math.pi, 0.0], "goal": [0.0, 0.0]},
+        defaults={"start": [-math.pi, 0.0], "goal": [0.0, 0.0],
+                  "geometry": "rrtcolearn.systems.pendulum:geometry"},
         costate_parametrisation=phi,
     )

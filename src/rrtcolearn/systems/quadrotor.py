@@ -40,12 +40,16 @@ to a few rad/s.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
+import numpy as np
 import sympy
 
+from rrtcolearn.systems.parameters import with_parameters
 from rrtcolearn.systems.symbolic import SymbolicSystem, build_system
 
-__all__ = ["ARM", "F_MAX", "GRAVITY", "HOVER_THRUST", "INERTIA", "MASS", "make_quadrotor"]
+__all__ = ["ARM", "F_MAX", "GRAVITY", "HOVER_THRUST", "INERTIA", "MASS", "geometry",
+           "make_quadrotor"]
 
 MASS = 0.486  # kg
 ARM = 0.25  # m, rotor distance from the centre of mass
@@ -55,9 +59,22 @@ F_MAX = MASS * GRAVITY  # N per rotor
 HOVER_THRUST = MASS * GRAVITY / 2.0  # N per rotor
 
 
-def make_quadrotor() -> SymbolicSystem:
+def geometry(x: np.ndarray) -> list[np.ndarray]:
+    """The vehicle of states x (K, 6) as polylines (K, P, 2) in metres: the frame between
+    the rotors and a rotor mast at each end (`rrtcolearn.animation`)."""
+    c, s = np.cos(x[:, 2]), np.sin(x[:, 2])
+    centre = x[:, :2]
+    side = ARM * np.stack([c, s], axis=1)
+    up = 0.08 * np.stack([-s, c], axis=1)
+    return [np.stack([centre - side, centre + side], axis=1),
+            np.stack([centre - side, centre - side + up], axis=1),
+            np.stack([centre + side, centre + side + up], axis=1)]
+
+
+def make_quadrotor(parameters: Mapping[str, float] | None = None) -> SymbolicSystem:
     """The planar quadrotor of Tedrake's notes (m 0.486, r 0.25, I 0.00383), thrusts in
-    [0, m g]."""
+    [0, m g]; ``parameters`` replaces some by name (m, r, I, g: ``{"m": 0.53}``), the
+    thrust box staying that of the shipped mass."""
     x, z, th, dx, dz, dth = sympy.symbols("x z theta dx dz dtheta", real=True)
     f1, f2 = sympy.symbols("f1 f2", real=True)
     m, r, inertia, g = sympy.symbols("m r I g", positive=True)
@@ -69,7 +86,7 @@ def make_quadrotor() -> SymbolicSystem:
     return build_system(
         "quadrotor", states=[x, z, th, dx, dz, dth], inputs=[f1, f2], drift=drift,
         input_matrix=input_matrix, input_weight=[[1, 0], [0, 1]],
-        parameters={m: MASS, r: ARM, inertia: INERTIA, g: GRAVITY},
+        parameters=with_parameters({m: MASS, r: ARM, inertia: INERTIA, g: GRAVITY}, parameters),
         input_low=[0.0, 0.0], input_high=[F_MAX, F_MAX],
         state_low=[-2.0, -1.0, -math.pi, -4.0, -4.0, -10.0],
         state_high=[2.0, 2.0, math.pi, 4.0, 4.0, 10.0],
@@ -79,5 +96,6 @@ def make_quadrotor() -> SymbolicSystem:
         description="Planar quadrotor (Tedrake: m 0.486, r 0.25, I 0.00383), thrusts in "
                     "[0, m g], hover at half",
         defaults={"start": [-1.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-                  "goal": [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]},
+                  "goal": [1.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+                  "geometry": "rrtcolearn.systems.quadrotor:geometry"},
     )
