@@ -39,12 +39,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `examples` importable
 
-from rrtcolearn.config import load_config  # noqa: E402
-from rrtcolearn.data.clean import clean_data  # noqa: E402
-from rrtcolearn.data.dataset import Dataset  # noqa: E402
-from rrtcolearn.data.generate import generate_data  # noqa: E402
-from rrtcolearn.evaluate import held_out_errors  # noqa: E402
-from rrtcolearn.pipeline import (  # noqa: E402
+from rrtcolearn.config import load_config
+from rrtcolearn.data.clean import clean_data
+from rrtcolearn.data.dataset import Dataset
+from rrtcolearn.data.generate import generate_data
+from rrtcolearn.evaluate import held_out_errors
+from rrtcolearn.pipeline import (
     FittedModel,
     fit_functions,
     plan,

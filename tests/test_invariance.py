@@ -138,7 +138,7 @@ def test_shifted_queries_get_the_same_answers(di_data, learner):
         np.testing.assert_array_equal(V2, V)
         np.testing.assert_array_equal(J2, J)
         np.testing.assert_array_equal(U2, U)
-        rows, cost, idx = f.query_valid(Y)
+        rows, cost, _ = f.query_valid(Y)
         np.testing.assert_array_equal(rows, np.flatnonzero(V))
         np.testing.assert_allclose(cost, J[V], rtol=1e-13, atol=0)
         assert best_valid(f, Y)[0] == best_valid(f, X)[0]
