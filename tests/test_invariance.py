@@ -226,3 +226,12 @@ def test_save_load_round_trip_and_old_files(di_data, tmp_path):
     save_arrays(tmp_path / "new.npz", FUNCTIONS_FORMAT, arrays, {**header, "version": 3})
     with pytest.raises(ArtefactError, match="refit"):
         LearnedFunctions.load(tmp_path / "new.npz")
+
+
+def test_check_system_refuses_a_coordinate_claimed_invariant_that_is_not():
+    from rrtcolearn.systems.check import SystemCheckError, check_system
+
+    system = make("cartpole")
+    check_system(system, n_samples=50)
+    with pytest.raises(SystemCheckError, match="invariant coordinate 1"):
+        check_system(dataclasses.replace(system, invariant_coordinates=(0, 1)), n_samples=50)
