@@ -75,10 +75,6 @@ def duration_share(p) -> float:
     return float(dur[extremal].sum() / dur.sum())
 
 
-def path_cost(p) -> float:
-    return float(p.tree.costs[p.path_nodes[-1]]) if p.path_nodes else float("nan")
-
-
 def tree_hash(p) -> str:
     t, n = p.tree, p.tree.n_nodes
     h = hashlib.sha256()
@@ -129,8 +125,8 @@ def run_system(name: str, n_sims: int, seeds: int, iterations: int, data_seed: i
         for s in range(seeds):
             p = plan(model, start, goal, cfg.plan.goal_tolerance, seed=s, time_limit=None,
                      max_iterations=iterations)
-            outcomes.append((p.solved, p.planning_cpu_s, duration_share(p), path_cost(p),
-                             p.iterations))
+            outcomes.append((p.solved, p.planning_cpu_s, duration_share(p), p.path_cost,
+                             p.iterations, float(p.tree.durations[p.path_nodes[1:]].sum())))
         ok = [o for o in outcomes if o[0]]
         row = {
             "success": f"{len(ok)}/{seeds}",
@@ -139,6 +135,7 @@ def run_system(name: str, n_sims: int, seeds: int, iterations: int, data_seed: i
             else None,
             "cost_median": float(np.median([o[3] for o in ok])) if ok else None,
             "iterations_median": float(np.median([o[4] for o in ok])) if ok else None,
+            "path_duration_median": float(np.median([o[5] for o in ok])) if ok else None,
             "J_rel_error_median": float(np.median(err.cost_rel_error)),
             "U_param_error_median": float(np.median(err.param_error)),
             # a landing that is not finite counts as a miss (inf)
@@ -152,7 +149,8 @@ def run_system(name: str, n_sims: int, seeds: int, iterations: int, data_seed: i
         rows[arm] = row
         print(f"  {arm:>13}: success {row['success']}, CPU median {_f(row['cpu_median_s'])} s, "
               f"learned share {_f(row['learned_duration_share_median'])}, cost "
-              f"{_f(row['cost_median'])}, J err {row['J_rel_error_median']:.3f}, U err "
+              f"{_f(row['cost_median'])}, duration {_f(row['path_duration_median'])} s, "
+              f"J err {row['J_rel_error_median']:.3f}, U err "
               f"{row['U_param_error_median']:.3f}, landing MSE {row['U_landing_mse_median']:.3g}, "
               f"V accepts {row['V_accepts']:.2f} "
               f"(threshold {row['threshold']:.3g}), offline {row['offline_cpu_s']:.0f} s",
