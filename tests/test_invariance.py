@@ -53,6 +53,12 @@ def test_detection_finds_the_cart_position_and_nothing_on_the_pendulums():
     assert _sparse_rrt_cartpole().invariant_coordinates == (0,)  # x
     assert make("pendulum").invariant_coordinates == ()
     assert make("acrobot").invariant_coordinates == ()
+    sys.path.insert(0, str(ROOT))
+    try:
+        from examples.sparse_rrt_acrobot import make_acrobot
+    finally:
+        sys.path.remove(str(ROOT))
+    assert make_acrobot().invariant_coordinates == ()
     assert make("quadrotor").invariant_coordinates == (0, 1)  # x, z: gravity is uniform
 
 
@@ -235,3 +241,21 @@ def test_check_system_refuses_a_coordinate_claimed_invariant_that_is_not():
     check_system(system, n_samples=50)
     with pytest.raises(SystemCheckError, match="invariant coordinate 1"):
         check_system(dataclasses.replace(system, invariant_coordinates=(0, 1)), n_samples=50)
+
+
+def test_a_fitted_run_records_its_invariant_coordinates_and_reloads_them(tmp_path):
+    from rrtcolearn import pipeline
+    from rrtcolearn.config import load_config
+
+    cfg = load_config(None, ['system.name="double_integrator"', "generate.n_simulations=500",
+                             'learn.learner="knn"'])
+    pipeline.generate(cfg, tmp_path)
+    pipeline.clean(cfg, tmp_path)
+    model = pipeline.fit(cfg, tmp_path)
+    recorded = pipeline.read_run_config(tmp_path).derived["learn.invariant_coordinates"]
+    assert recorded.startswith("[0]: q:")
+    loaded = pipeline.load_model(tmp_path)
+    assert loaded.functions.features_.invariant == (0,)
+    X = _shifted(np.array([[0.5, 0.0, 0.75, 0.25]]), 2, (0,), np.array([2.0]))
+    for a, b in zip(model.functions.query(X), loaded.functions.query(X), strict=True):
+        np.testing.assert_array_equal(a, b)
