@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from rrtcolearn.systems.base import System
 
 FUNCTIONS_FORMAT = "rrtcolearn.learned-functions"
-#: Version of a model file's contents (in its header's params). 2: J, U and V learn on
+#: Version of a model file's contents (its header's "version"). 2: J, U and V learn on
 #: `QueryFeatures` (the invariant coordinates in ``data.invariant``). A file without it is
 #: version 1, from before the features: it was fitted on the raw queries, which is what its
 #: missing ``data.invariant`` (none) gives, so it loads and answers as it did.
