@@ -37,9 +37,10 @@ def test_networks_answer_j_and_u_and_knn_answers_v(mlp_run):
     X = _held_out(model)
     cost, steer, valid = f.query(X)
     j_net, u_net = f.networks_
-    np.testing.assert_array_equal(cost, np.clip(j_net.predict(X), 1e-5, 1e5))
-    np.testing.assert_array_equal(steer, u_net.predict(X))
-    dist, _ = f.cost_to_go_.kneighbors(X * f.input_scale_)
+    F = f.features_.transform(X)  # the networks learn on the features (x1 - x0 along q)
+    np.testing.assert_array_equal(cost, np.clip(j_net.predict(F), 1e-5, 1e5))
+    np.testing.assert_array_equal(steer, u_net.predict(F))
+    dist, _ = f.cost_to_go_.kneighbors(F * f.input_scale_)
     np.testing.assert_array_equal(valid, dist.sum(axis=1) <= f.validity_.threshold)
     # the planner's path gives the same J for the rows V accepts
     rows, cost_v, _ = f.query_valid(X)

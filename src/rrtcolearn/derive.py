@@ -23,6 +23,9 @@ the measurements behind them are in docs/derived_settings.md.
   mean range (the paper's pi/4 and pi/2 on its 2 pi range).
 - ``plan.control_samples``: one draw where a single steering parameter pins the edge (the
   paper's planner), 16 with more.
+- ``learn.invariant_coordinates`` (recorded, not a setting): the state coordinates J and U
+  are learned on the difference x1 - x0 of, found in the sympy model
+  (`System.invariant_coordinates`, docs/invariance.md).
 - ``plan.extend_distance``: off (the paper's planner) where a uniform target lies within
   the data's reach of a node often enough (>= 10% from the box centre); else a third of the
   reach (the 4-state systems' measured 0.5), so that random targets stay within the
@@ -33,11 +36,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from rrtcolearn.systems.base import System
+
+if TYPE_CHECKING:
+    from rrtcolearn.learn.features import QueryFeatures
 
 VALIDITY_QUANTILE = 0.97
 COST_QUANTILE = 0.9
@@ -86,6 +92,20 @@ def learner(system: System) -> Choice:
                       "'rrtcolearn[mlp]')")
     return Choice("learn.learner", "mlp", f"{system.n_states} states: neural J and U "
                   "(k-NN's error grows with the dimension)")
+
+
+def invariant_coordinates(system: System) -> Choice:
+    """The coordinates the learners see as differences (`System.invariant_coordinates`),
+    with why; a record of what the system's model shows, not a setting to override."""
+    inv = tuple(system.invariant_coordinates)
+    if not inv:
+        return Choice("learn.invariant_coordinates", [], "none: every state coordinate "
+                      "enters the dynamics or the costate parametrisation (or the system "
+                      "has no sympy model to show otherwise)")
+    names = ", ".join(system.state_names[i] for i in inv)
+    return Choice("learn.invariant_coordinates", list(inv), f"{names}: neither a(x), B(x) "
+                  "nor the costate parametrisation depend on them, so J and U are learned "
+                  "on x1 - x0 there")
 
 
 def steering_sigmas(system: System) -> tuple[Choice, Choice]:
@@ -176,9 +196,13 @@ def pilot_max_cost(system: System, *, time_weight: float, dt: float,
 
 def validity_threshold(inputs: np.ndarray, simulation: np.ndarray, scale: np.ndarray,
                        n_neighbors: int, seed: np.random.SeedSequence,
-                       periodic: tuple[tuple[int, float, float], ...] = ()) -> Choice:
+                       periodic: tuple[tuple[int, float, float], ...] = (),
+                       features: QueryFeatures | None = None) -> Choice:
     """V's threshold: the 97% quantile of the summed distance from held-out pairs to their
-    m nearest pairs among the rest (a twentieth of the simulations held out, whole)."""
+    m nearest pairs among the rest (a twentieth of the simulations held out, whole), in
+    the learners' space (``features``, `rrtcolearn.learn.features.learning_geometry`;
+    None: the raw queries)."""
+    from rrtcolearn.learn.features import QueryFeatures
     from rrtcolearn.learn.models import _pad_periodic
     from rrtcolearn.learn.neighbours import NeighbourIndex
 
@@ -192,17 +216,21 @@ def validity_threshold(inputs: np.ndarray, simulation: np.ndarray, scale: np.nda
     queries = np.flatnonzero(mask)
     if len(queries) > HELD_OUT_QUERIES:
         queries = np.sort(rng.choice(queries, HELD_OUT_QUERIES, replace=False))
-    full_scale = np.tile(scale, 2)
-    train = np.asarray(inputs, dtype=np.float64)[~mask]
-    q = np.asarray(inputs, dtype=np.float64)[queries] * full_scale
+    inputs = np.asarray(inputs, dtype=np.float64)
+    if features is None:
+        features = QueryFeatures(inputs.shape[1] // 2)
+    feature_scale = features.scale(scale)
+    train = inputs[~mask]
+    q = features.transform(inputs[queries]) * feature_scale
 
     def quantile(train: np.ndarray) -> float:
-        dist, _ = NeighbourIndex(train * full_scale).query(q, n_neighbors)
+        dist, _ = NeighbourIndex(features.transform(train) * feature_scale).query(
+            q, n_neighbors)
         return float(np.quantile(dist.sum(axis=1), VALIDITY_QUANTILE))
 
     value = quantile(train)
     if periodic:  # rows across an angle seam are neighbours too (as in the fitted model)
-        value = quantile(_pad_periodic(train, periodic, full_scale, value)[1])
+        value = quantile(_pad_periodic(train, periodic, np.tile(scale, 2), value)[1])
     return Choice("learn.validity_threshold", value,
                   f"{VALIDITY_QUANTILE:.0%} of {len(q)} held-out pairs have their "
                   f"{n_neighbors} nearest data pairs within it")

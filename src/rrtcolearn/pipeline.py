@@ -39,6 +39,7 @@ from rrtcolearn.data.store import (
     write_checked_json,
 )
 from rrtcolearn.errors import ArtefactError, ConfigError, EnvironmentProblem
+from rrtcolearn.learn.features import learning_geometry
 from rrtcolearn.learn.models import FUNCTIONS_FORMAT, LearnedFunctions
 from rrtcolearn.planning.problem import PlanningProblem, is_own_limit
 from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
@@ -103,13 +104,16 @@ def system_from_config(config: Config) -> System:
 
 
 def _record(config: Config, choices: list[derive.Choice]) -> Config:
-    """``config`` with each choice's value set and its reason in ``config.derived``."""
+    """``config`` with each choice's value set and its reason in ``config.derived``; a
+    choice that is no setting of its section (what the system shows, e.g. its invariant
+    coordinates) is recorded in ``config.derived`` only."""
     if not choices:
         return config
     data = config.model_dump()
     for c in choices:
         section, key = c.key.split(".")
-        data[section][key] = c.value
+        if key in type(getattr(config, section)).model_fields:
+            data[section][key] = c.value
         data["derived"][c.key] = c.text
     return Config.model_validate(data)
 
@@ -415,13 +419,13 @@ def _learn_choices(system: System, data: Dataset, config: Config) -> list[derive
         raise ArtefactError(f"the cleaned dataset has {len(data)} points, fewer than "
                             f"learn.n_neighbors = {learn.n_neighbors}")
     choices = [] if learn.learner is not None else [derive.learner(system)]
+    choices.append(derive.invariant_coordinates(system))
     if learn.validity_threshold is None:
         try:
-            periodic = tuple((j, float(system.state_low[j]), float(system.state_high[j]))
-                             for j in system.angle_dims) if learn.periodic else ()
+            features, periodic = learning_geometry(system, learn.periodic)
             choices.append(derive.validity_threshold(
                 data.inputs, data.simulation, system.metric_scale, learn.n_neighbors,
-                seed_stream(config.seed, "derive"), periodic))
+                seed_stream(config.seed, "derive"), periodic, features))
         except ValueError as exc:
             raise ArtefactError(str(exc)) from None
     return choices

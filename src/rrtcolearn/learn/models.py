@@ -16,6 +16,7 @@ import numpy as np
 
 from rrtcolearn.data.store import load_arrays, save_arrays
 from rrtcolearn.errors import ArtefactError
+from rrtcolearn.learn.features import QueryFeatures, learning_geometry
 from rrtcolearn.learn.neighbours import NeighbourIndex
 
 if TYPE_CHECKING:
@@ -24,6 +25,11 @@ if TYPE_CHECKING:
     from rrtcolearn.systems.base import System
 
 FUNCTIONS_FORMAT = "rrtcolearn.learned-functions"
+#: Version of a model file's contents (its header's "version"). 2: J, U and V learn on
+#: `QueryFeatures` (the invariant coordinates in ``data.invariant``). A file without it is
+#: version 1, from before the features: it was fitted on the raw queries, which is what its
+#: missing ``data.invariant`` (none) gives, so it loads and answers as it did.
+FUNCTIONS_VERSION = 2
 
 
 class _KNNBase:
@@ -228,17 +234,17 @@ class _NeighbourAnswers:
 
 
 class _NetworkAnswers:
-    """J and U from the networks on the raw query (the neighbours are not used)."""
+    """J and U from the networks on the query's features (the neighbours are not used)."""
 
     def __init__(self, networks: tuple[NeuralRegressor, NeuralRegressor],
                  bounds: tuple[float, float]):
         self.networks, self.bounds = networks, bounds
 
     def cost(self, X: np.ndarray, dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        return np.clip(self.networks[0].predict(np.asarray(X, dtype=np.float64)), *self.bounds)
+        return np.clip(self.networks[0].predict(X), *self.bounds)
 
     def steer(self, X: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        return self.networks[1].predict(np.asarray(X, dtype=np.float64))
+        return self.networks[1].predict(X)
 
     def cost_rows(self, X: np.ndarray) -> np.ndarray:
         """`cost` computed row by row (a row's J does not depend on the batch)."""
@@ -250,10 +256,14 @@ class LearnedFunctions:
     (scikit-learn's estimator contract: hyper-parameters in ``__init__``, ``fit`` returns
     self, learned state in attributes ending in ``_``; `save`/`load` without pickle).
 
-    With ``learner = "mlp"``, J and U come from neural networks on the raw query instead of
+    With ``learner = "mlp"``, J and U come from neural networks on the query instead of
     the neighbours' averages; V, and so which queries are answered at all, stays the k-NN
     classifier. ``periodic``: angle coordinates wrap in the distance (rows near the seam
     are indexed one turn over too). ``seed`` seeds the networks' training.
+
+    Every learner sees a query (x0, x1) through the system's `QueryFeatures`: along its
+    invariant coordinates (`System.invariant_coordinates`) the difference x1_i - x0_i, so
+    queries shifted along them get the same answers. The public queries take (x0, x1) rows.
     """
 
     def __init__(self, *, n_neighbors: int = 3,
@@ -276,8 +286,7 @@ class LearnedFunctions:
         system's metric weights, angle coordinates and steering-parameter ranges."""
         if self.learner not in ("knn", "mlp"):
             raise ValueError(f"learner must be 'knn' or 'mlp', got {self.learner!r}")
-        periodic = tuple((j, float(system.state_low[j]), float(system.state_high[j]))
-                         for j in system.angle_dims) if self.periodic else ()
+        features, periodic = learning_geometry(system, self.periodic)
         self.training_ = {
             "inputs": np.asarray(data.inputs, dtype=np.float64),
             "cost": np.asarray(data.cost, dtype=np.float64),
@@ -286,7 +295,8 @@ class LearnedFunctions:
             "circular": np.asarray(system.param_circular, dtype=bool).reshape(-1),
             "param_low": np.asarray(system.param_low, dtype=np.float64),
             "param_high": np.asarray(system.param_high, dtype=np.float64),
-            "periodic": np.asarray(periodic, dtype=np.float64).reshape(-1, 3)}
+            "periodic": np.asarray(periodic, dtype=np.float64).reshape(-1, 3),
+            "invariant": np.asarray(features.invariant, dtype=np.int64)}
         self._fit_neighbours()
         self.networks_ = None
         if self.learner == "mlp":
@@ -300,12 +310,15 @@ class LearnedFunctions:
         leaf order (`NeighbourIndex.rows`), which spares the tree's median searches."""
         t = self.training_
         X = t["inputs"]
-        scale = np.tile(t["input_scale"], 2)
+        n = X.shape[1] // 2
+        self.features_ = QueryFeatures(n, tuple(int(i) for i in t.get("invariant", ())))
         source = np.arange(len(X))
         periodic = tuple((int(j), lo, hi) for j, lo, hi in t["periodic"])
         if periodic and len(X):
-            source, X = _pad_periodic(X, periodic, scale, self.validity_threshold)
-        Xs = X * scale
+            source, X = _pad_periodic(X, periodic, np.tile(t["input_scale"], 2),
+                                      self.validity_threshold)
+        scale = self.features_.scale(t["input_scale"])
+        Xs = self.features_.transform(X) * scale
         index = NeighbourIndex(Xs, rows)
         m = self.n_neighbors
         circular = tuple(bool(c) for c in t["circular"])
@@ -334,10 +347,11 @@ class LearnedFunctions:
         high = tuple(float(v) for v in st.low_ + st.period_)
         common = dict(hidden=tuple(self.mlp_hidden), max_iter=self.mlp_max_iter,
                       max_samples=self.mlp_max_samples)
+        inputs = self.features_.transform(t["inputs"])
         j_net = NeuralRegressor(seed=self.seed, log_target=True, **common).fit(
-            t["inputs"], t["cost"])
+            inputs, t["cost"])
         u_net = NeuralRegressor(seed=self.seed + 1, circular=circ, low=low, high=high,
-                                **common).fit(t["inputs"], t["targets"])
+                                **common).fit(inputs, t["targets"])
         return j_net, u_net
 
     def save(self, path: str | os.PathLike, meta: dict | None = None) -> str:
@@ -354,7 +368,8 @@ class LearnedFunctions:
                   "periodic": self.periodic, "mlp_hidden": list(self.mlp_hidden),
                   "mlp_max_iter": self.mlp_max_iter, "mlp_max_samples": self.mlp_max_samples,
                   "seed": self.seed}
-        return save_arrays(path, FUNCTIONS_FORMAT, arrays, {**(meta or {}), "params": params})
+        return save_arrays(path, FUNCTIONS_FORMAT, arrays, {**(meta or {}), "params": params,
+                                                            "version": FUNCTIONS_VERSION})
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> tuple[LearnedFunctions, dict]:
@@ -362,6 +377,14 @@ class LearnedFunctions:
         the networks read back bit for bit) and the file's header; ArtefactError for anything
         that does not check out."""
         arrays, meta = load_arrays(path, FUNCTIONS_FORMAT)
+        version = meta.get("version", 1)
+        if version not in (1, FUNCTIONS_VERSION):
+            raise ArtefactError(f"{path} is a model file of version {version!r}; this "
+                                f"rrtcolearn reads versions 1 and {FUNCTIONS_VERSION}: refit "
+                                "it with `rrtcolearn fit`")
+        if version == 1 and "data.invariant" in arrays:
+            raise ArtefactError(f"{path} is not a readable model file (version 1 with "
+                                "invariant coordinates)")
         try:
             params = dict(meta["params"])
             params["cost_bounds"] = tuple(params["cost_bounds"])
@@ -386,16 +409,14 @@ class LearnedFunctions:
     def steer(self, X: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
         """U (Q, k+1) for queries X (Q, 2n) whose neighbour indices (Q, m) `query_valid`
         returned."""
-        return self._answers.steer(X, neighbours)
-
-    def _scaled(self, X: np.ndarray) -> np.ndarray:
-        return np.asarray(X, dtype=np.float64) * self.input_scale_
+        return self._answers.steer(self.features_.transform(X), neighbours)
 
     def query(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(J (Q,), U (Q, k+1), valid (Q,)) for queries X (Q, 2n)."""
-        dist, idx = self.cost_to_go_.kneighbors(self._scaled(X))
+        F = self.features_.transform(X)
+        dist, idx = self.cost_to_go_.kneighbors(F * self.input_scale_)
         valid = self.validity_.predict_from_neighbours(dist, idx)
-        return self._answers.cost(X, dist, idx), self._answers.steer(X, idx), valid
+        return self._answers.cost(F, dist, idx), self._answers.steer(F, idx), valid
 
     def query_valid(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rows of X (Q, 2n) that V accepts, with their J and their neighbour indices.
@@ -405,7 +426,8 @@ class LearnedFunctions:
         (valid rows (V,), J (V,), neighbour indices (V, m)); U follows from `steer` for the
         row the caller picks.
         """
-        Xs = self._scaled(X)
+        F = self.features_.transform(X)
+        Xs = F * self.input_scale_
         rows = np.flatnonzero(self.validity_.may_be_valid(Xs))
         threshold, m, index = self.validity_.threshold, self.n_neighbors, self.cost_to_go_.index_
         asked = len(X)
@@ -422,7 +444,7 @@ class LearnedFunctions:
         rows, dist, idx = rows[ok], dist[ok], idx[ok]
         if asked:
             self._accepted = 0.9 * self._accepted + 0.1 * rows.size / asked
-        return rows, self._answers.cost(np.asarray(X)[rows], dist, idx), idx
+        return rows, self._answers.cost(F[rows], dist, idx), idx
 
 
 def best_valid(functions: LearnedFunctions, X: np.ndarray) -> tuple[int, np.ndarray | None]:
@@ -442,11 +464,12 @@ def best_valid(functions: LearnedFunctions, X: np.ndarray) -> tuple[int, np.ndar
             return -1, None
         best = int(np.argmin(cost))
         return int(rows[best]), idx[best]
-    Xs = functions._scaled(X)
+    F = functions.features_.transform(X)
+    Xs = F * functions.input_scale_
     rows = np.flatnonzero(functions.validity_.may_be_valid(Xs))
     if rows.size == 0:
         return -1, None
-    cost = answers.cost_rows(np.asarray(X, dtype=np.float64)[rows])
+    cost = answers.cost_rows(F[rows])
     order = rows[np.argsort(cost, kind="stable")]
     v = functions.validity_
     return functions.cost_to_go_.index_.first_valid(Xs, order, v.n_neighbors,

@@ -57,6 +57,13 @@ class System:
     input_low, input_high : (m,) box of the inputs (+-inf where unbounded; None: no limits).
         With limits, u* is the minimiser of H over the box and every kernel above uses it
         (saturated optimal control, `rrtcolearn.systems.symbolic.limit_derivation`).
+    invariant_coordinates : sorted state indices i on which nothing of the optimal control
+        problem depends (a(x), B(x), hence H*, the state+costate ODEs and the running cost,
+        and the costate parametrisation): shifting x0 and x1 together along such a
+        coordinate leaves J and U unchanged, so they are learned on x1_i - x0_i there
+        (`rrtcolearn.learn.features`). Found from the sympy model by `build_system`
+        (`rrtcolearn.systems.symbolic.invariant_coordinates`); () for a system given as
+        numeric callables only, whose invariances cannot be proven.
     """
 
     name: str
@@ -89,6 +96,7 @@ class System:
     rollout_draws_jit: Callable | None = None
     hold_jit: Callable | None = None
     explore_jit: Callable | None = None
+    invariant_coordinates: tuple[int, ...] = ()
 
     @property
     def metric_scale(self) -> np.ndarray:

@@ -149,6 +149,9 @@ class _Checker:
         _require(len(set(s.angle_dims)) == len(s.angle_dims)
                  and all(0 <= j < n for j in s.angle_dims), s, "metadata",
                  f"angle_dims {s.angle_dims} are not distinct state indices")
+        inv = tuple(s.invariant_coordinates)
+        _require(len(set(inv)) == len(inv) and all(0 <= j < n for j in inv), s, "metadata",
+                 f"invariant_coordinates {inv} are not distinct state indices")
         for what, arr in (("input_low", s.input_low), ("input_high", s.input_high)):
             if arr is not None:
                 _require(np.shape(arr) == (self.m,), s, "metadata",
@@ -396,18 +399,27 @@ class _Checker:
             out2 = self.rhs_batch(z2)
             _worst(s, "angle periodicity", np.abs(out2 - out), 1e-9 * (1.0 + np.abs(out)),
                    f"rhs is not 2*pi-periodic in angle coordinate {j}", ctx)
+        # nothing depends on an invariant coordinate: shifting it changes no derivative
+        for j in s.invariant_coordinates:
+            z2 = z.copy()
+            z2[:, j] += 0.37 * (s.state_high[j] - s.state_low[j])
+            out2 = self.rhs_batch(z2)
+            _worst(s, "invariance", np.abs(out2 - out), 1e-9 * (1.0 + np.abs(out)),
+                   f"rhs depends on invariant coordinate {j}", ctx)
 
     def periodic_costates(self, x, p, lam):
         s = self.s
-        for j in s.angle_dims:
+        shifts = [(j, 2.0 * np.pi, "angle periodicity", "is not 2*pi-periodic in angle "
+                   f"coordinate {j}") for j in s.angle_dims]
+        shifts += [(j, 0.37 * (s.state_high[j] - s.state_low[j]), "invariance",
+                    f"depends on invariant coordinate {j}") for j in s.invariant_coordinates]
+        for j, shift, check, what in shifts:
             x2 = x.copy()
-            x2[:, j] += 2.0 * np.pi
+            x2[:, j] += shift
             lam2, valid2 = s.costate_from_params(x2, p, self.w)
-            _worst(s, "angle periodicity", np.where(valid2, np.abs(lam2 - lam).max(axis=1),
-                                                    np.inf),
+            _worst(s, check, np.where(valid2, np.abs(lam2 - lam).max(axis=1), np.inf),
                    1e-9 * (1.0 + np.abs(lam).max(axis=1)),
-                   f"costate_from_params is not 2*pi-periodic in angle coordinate {j}",
-                   {"x": x, "p": p})
+                   f"costate_from_params {what}", {"x": x, "p": p})
 
     def rollouts(self, x, lam, n_traj: int = 16, dt: float = 0.01, steps: int = 100):
         """rollout_jit integrates system.rhs and conserves H* to RK4 accuracy.
@@ -525,7 +537,8 @@ def check_system(system: System, *, n_samples: int = 200, seed: int = 0,
     - ``rhs`` = (dH*/dlambda, -dH*/dx) by central differences of H* (skipping stencils across
       a switch of the saturated u*), its state part equals ``dynamics(x, u*)`` and its last
       entry ``w + u*^T R u*/2``;
-    - ``rhs`` and ``costate_from_params`` are 2*pi-periodic in ``angle_dims``;
+    - ``rhs`` and ``costate_from_params`` are 2*pi-periodic in ``angle_dims`` and do not
+      change when an invariant coordinate (`System.invariant_coordinates`) is shifted;
     - ``rollout_jit`` takes RK4 steps of ``rhs``, conserves H* to integration accuracy (with
       input limits also on extremals across switches, where RK4 is second order), and
       ``rollout_batch_jit`` agrees with it.

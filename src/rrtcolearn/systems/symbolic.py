@@ -74,6 +74,7 @@ __all__ = [
     "derive",
     "generate_source",
     "generated_dir",
+    "invariant_coordinates",
     "limit_derivation",
     "load_generated_module",
     "with_input_limits",
@@ -736,11 +737,34 @@ class CostateParametrisation:
         return ps, lam0, e, right, inverse
 
 
+def invariant_coordinates(der: Derivation, line: tuple | None = None) -> tuple[int, ...]:
+    """The state indices i whose symbol x_i appears in none of the expressions the optimal
+    control problem is made of: a(x), B(x), H*, the state+costate ODEs, u*, the running cost,
+    the costate ray's terms, and ``line`` (a costate parametrisation's expressions,
+    `CostateParametrisation.expressions`).
+
+    Then a trajectory from x0 + c e_i under the same steering parameters is the one from x0
+    shifted by c e_i, with the same cost and duration: J and U are invariant to shifting x0
+    and x1 together along e_i. An angle coordinate qualifies too when nothing depends on it
+    (its wrap is then a shift like any other). The test is syntactic, so it is conservative:
+    an expression that depends on x_i only in a form sympy does not cancel (sin^2 + cos^2)
+    hides an invariance, never invents one.
+    """
+    exprs = [*der.drift, *der.input_matrix, der.h_star, *der.state_ode, *der.costate_ode,
+             *der.optimal_control, der.running_cost, der.ray_slope, *der.ray_factors]
+    if line is not None:
+        _, lam0, direction, right, inverse = line
+        exprs += [*lam0, *direction, right, *(inverse or ())]
+    used = set().union(*(sympy.sympify(e).free_symbols for e in exprs))
+    return tuple(i for i, xi in enumerate(der.x) if xi not in used)
+
+
 def _generated_fields(der: Derivation, cp: CostateParametrisation | None,
                       cache_dir: str | os.PathLike | None) -> dict:
     """The `System` fields that come from the generated module of ``der`` (and ``cp``)."""
     n = der.n
-    source = generate_source(der, None if cp is None else cp.expressions(der))
+    line = None if cp is None else cp.expressions(der)
+    source = generate_source(der, line)
     module = load_generated_module(source, cache_dir)
     if cp is None:
         params = dict(param_names=None, param_low=-np.ones(n), param_high=np.ones(n),
@@ -767,6 +791,7 @@ def _generated_fields(der: Derivation, cp: CostateParametrisation | None,
         explore_jit=module.explore_jit,
         input_low=np.array(der.input_low),
         input_high=np.array(der.input_high),
+        invariant_coordinates=invariant_coordinates(der, line),
         source=source,
         derivation=der,
     )
