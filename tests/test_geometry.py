@@ -226,3 +226,41 @@ def test_inflation_is_conservative():
     x = np.random.default_rng(6).uniform([-1, -1, -3], [3, 1, 3], (3000, 3))
     exact, grown = ws.contains(x), ws.inflated().contains(x)
     assert np.all(grown[exact]) and grown.sum() > exact.sum()
+
+
+def test_config_reads_shapes_and_body_and_the_command_line_adds_them():
+    from rrtcolearn.config import add_obstacles, plan_obstacles, validate
+    cfg = validate({"plan": {
+        "obstacles": [{"type": "box", "low": [0, 0], "high": [1, 1]},
+                      {"shape": "box", "center": [1, 1], "size": [0.5, 0.5], "angle": 0.3}],
+        "body": {"shape": "box", "size": [0.5, 0.25], "pose": [0, 1, 2]}}})
+    cfg = add_obstacles(cfg, ["disc:2,0,0.3", "polygon:0,0,1,0,0,1", "box:2,2,3,3"])
+    obs = plan_obstacles(cfg.plan)
+    assert [o["type"] for o in obs] == ["box", "box", "workspace"]
+    ws = obs[-1]
+    assert ws["body"] == {"shape": "box", "size": [0.5, 0.25], "pose": [0, 1, 2]}
+    assert [s["shape"] for s in ws["shapes"]] == ["box", "disc", "polygon"]
+    assert ws["shapes"][1] == {"shape": "disc", "center": [2.0, 0.0], "radius": 0.3}
+    assert Workspace.from_dict(ws).contains(np.array([[2.0, 0.4, 0.0]]))[0]
+
+
+@pytest.mark.parametrize("plan, message", [
+    ({"obstacles": [{"shape": "disc", "center": [0, 0], "radius": 1}]},
+     "config: plan.body: workspace obstacles"),
+    ({"obstacles": [{"shape": "box", "center": [0, 0]}],
+      "body": {"shape": "disc", "radius": 1, "pose": [0, 1]}},
+     "config: plan.obstacles.0.shape.size: a box needs it"),
+    ({"body": {"shape": "disc", "radius": 1}}, "config: plan.body.pose"),
+    ({"obstacles": [{"shape": "box", "center": [0, 0], "sise": [1, 1]}]},
+     "config: unknown key 'plan.obstacles.0.shape.sise' (did you mean 'size'?)"),
+    ({"obstacles": [{"kind": "box"}]}, "config: plan.obstacles.0: an obstacle needs type"),
+])
+def test_config_errors_are_one_line_naming_the_key(plan, message):
+    from rrtcolearn.config import validate
+    from rrtcolearn.errors import ConfigError
+    with pytest.raises(ConfigError) as info:
+        validate({"plan": plan})
+    assert str(info.value).startswith(message) and "\n" not in str(info.value)
+    from rrtcolearn.config import parse_obstacle
+    with pytest.raises(ConfigError, match="rect:cx,cy,w,h"):
+        parse_obstacle("rect:1,2,3")

@@ -82,7 +82,9 @@ SchedulerOpt = Annotated[str | None, typer.Option(
 DaskLocalOpt = Annotated[int | None, typer.Option(
     "--dask-local", help="start a Dask LocalCluster with this many workers")]
 ObstacleOpt = Annotated[list[str] | None, typer.Option(
-    "--obstacle", help="forbidden region: box:lo1,lo2,hi1,hi2 or halfplane:n1,n2,offset")]
+    "--obstacle", help="forbidden region: box:lo1,lo2,hi1,hi2 or halfplane:n1,n2,offset in "
+    "state space; rect:cx,cy,w,h[,angle], disc:cx,cy,r, polygon:x1,y1,... or sphere:cx,cy,cz,r "
+    "in the workspace, for plan.body")]
 
 
 def _printable(message: str) -> str:
