@@ -4,12 +4,12 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test fuzz bench bench-anytime bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup lint clean-venv
+.PHONY: run test fuzz bench bench-anytime bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup bench-dynobench lint clean-venv
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,dask,ompl,direct,mlp]"
+	$(BIN)/python -m pip install --quiet -e ".[test,dask,ompl,direct,mlp,dynobench]"
 	touch $(STAMP)
 
 run: $(STAMP)
@@ -61,6 +61,12 @@ bench-limits: $(STAMP)
 # (about a minute; makes runs/pendulum-swingup first if it holds no model)
 bench-startup: $(STAMP)
 	$(BIN)/python bench/startup.py
+
+# dynobench's unicycle problems against its reference solutions, exact bodies against inflation,
+# and the collision test's cost per RK4 step (docs/dynobench.md; shapely for the library row)
+bench-dynobench: $(STAMP)
+	$(BIN)/python -m pip install --quiet shapely
+	$(BIN)/python bench/dynobench_bench.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench

@@ -63,6 +63,7 @@ def plot_workspace(ax, spec: dict, states: np.ndarray, n_bodies: int = 12) -> li
         patch = Circle(tuple(ob.center), ob.radius, label=label, **style) \
             if isinstance(ob, Disc) else Polygon(ob.vertices(), label=label, **style)
         artists.append(ax.add_patch(patch))
+    ax.set_aspect("equal", adjustable="datalim")  # the bodies' true shapes
     picks = np.unique(np.linspace(0, len(states) - 1, n_bodies).round().astype(int))
     poses = ws.body.poses(states[picks])
     body_style = {"fill": False, "edgecolor": "tab:purple", "lw": 0.9}
@@ -171,7 +172,7 @@ def tree_figure(plan: Plan, state_names: tuple[str, ...] | None = None):
     n = len(plan.start)
     if n <= 2 or state_names is None or n % 2:
         fig, ax = plt.subplots(figsize=(6.4, 4.8))
-        named = state_names is not None and n == 2 and plan.system != "pendulum"
+        named = state_names is not None and n >= 2 and plan.system != "pendulum"
         plot_tree(ax, plan, labels=tuple(state_names[:2]) if named else None)
         return fig
     half = n // 2
