@@ -153,3 +153,27 @@ def test_unbuilt_models_say_so():
     p = db.read_problem("acrobot_v0/swing_up_obs")
     with pytest.raises(db.DynobenchError, match=r"robots\[0\]\.type: acrobot_v0 is read but not"):
         db.make_system(p)
+
+
+def test_the_plan_figure_draws_the_obstacles_and_the_body_along_the_path():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.patches import Polygon
+
+    from rrtcolearn import planners
+    from rrtcolearn.plotting import tree_figure
+    p = db.read_problem("unicycle1_v0/parallelpark_0")
+    system = db.make_system(p)
+    plan = planners.make("random-rrt").solve(
+        db.planning_problem(p, system), TerminationCondition(time_limit=None,
+                                                             max_iterations=20000), seed=0)
+    fig = tree_figure(plan, system.state_names)
+    ax = fig.axes[0]
+    polys = [q.get_xy()[:4] for q in ax.patches if isinstance(q, Polygon)]
+    obstacles = [q for q in polys if np.allclose(q.mean(0), [0.3, 0.3]) or
+                 np.allclose(q.mean(0), [1.1, 0.3]) or np.allclose(q.mean(0), [2.7, 0.3])]
+    assert len(obstacles) == 3 and len(polys) == 3 + 12
+    first = [q for q in polys if np.allclose(q.mean(0), p.start[:2])]
+    assert first and np.allclose(np.ptp(first[0], 0), [0.5, 0.25])  # the body at the start
+    assert ax.get_xlabel() == "x" and ax.get_aspect() == 1.0
