@@ -177,3 +177,16 @@ def test_the_plan_figure_draws_the_obstacles_and_the_body_along_the_path():
     first = [q for q in polys if np.allclose(q.mean(0), p.start[:2])]
     assert first and np.allclose(np.ptp(first[0], 0), [0.5, 0.25])  # the body at the start
     assert ax.get_xlabel() == "x" and ax.get_aspect() == 1.0
+
+
+def test_the_command_line_names_a_bad_problem_in_one_line(tmp_path):
+    # the whole `run --dynobench` (fit included) takes minutes even tiny: docs/dynobench.md
+    # gives the commands run by hand; here only that a bad name is one line, no traceback
+    from typer.testing import CliRunner
+
+    from rrtcolearn.cli import app
+
+    bad = CliRunner().invoke(app, ["run", "--dynobench", "nowhere/x", "--out",
+                                   str(tmp_path / "x")])
+    assert bad.exit_code == 2 and bad.output.strip().count("\n") == 0, bad.output
+    assert bad.output.startswith("error: nowhere/x: not a problem dynobench ships")
