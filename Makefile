@@ -4,12 +4,12 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test fuzz bench bench-anytime bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup bench-tracking lint clean-venv
+.PHONY: run test fuzz bench bench-anytime bench-systems bench-external bench-derived bench-iterations bench-limits bench-startup bench-tracking bench-dynobench lint clean-venv
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,dask,ompl,direct,mlp]"
+	$(BIN)/python -m pip install --quiet -e ".[test,dask,ompl,direct,mlp,dynobench]"
 	touch $(STAMP)
 
 run: $(STAMP)
@@ -66,6 +66,12 @@ bench-startup: $(STAMP)
 # start error, 100 runs each (makes the five plans into runs/tracking first if missing)
 bench-tracking: $(STAMP)
 	$(BIN)/python bench/tracking_bench.py
+
+# dynobench's unicycle problems against its reference solutions, exact bodies against inflation,
+# and the collision test's cost per RK4 step (docs/dynobench.md; shapely for the library row)
+bench-dynobench: $(STAMP)
+	$(BIN)/python -m pip install --quiet shapely
+	$(BIN)/python bench/dynobench_bench.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench

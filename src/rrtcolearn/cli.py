@@ -82,7 +82,37 @@ SchedulerOpt = Annotated[str | None, typer.Option(
 DaskLocalOpt = Annotated[int | None, typer.Option(
     "--dask-local", help="start a Dask LocalCluster with this many workers")]
 ObstacleOpt = Annotated[list[str] | None, typer.Option(
-    "--obstacle", help="forbidden region: box:lo1,lo2,hi1,hi2 or halfplane:n1,n2,offset")]
+    "--obstacle", help="forbidden region: box:lo1,lo2,hi1,hi2 or halfplane:n1,n2,offset in "
+    "state space; rect:cx,cy,w,h[,angle], disc:cx,cy,r, polygon:x1,y1,... or sphere:cx,cy,cz,r "
+    "in the workspace, for plan.body")]
+
+DynobenchOpt = Annotated[str | None, typer.Option(
+    "--dynobench", help="a dynobench problem (the optional extra): <robot>/<environment> as "
+    "the package ships it, e.g. unicycle1_v0/parallelpark_0, or an environment file; poses "
+    "its robot's system, query, body and obstacles, and writes the plan also in dynobench's "
+    "result format (plan.dynobench.yaml)")]
+
+
+def _dynobench(problem: str | None) -> tuple[object, dict]:
+    """The dynobench problem named on the command line and the config sections posing it
+    (None, {} without one)."""
+    if problem is None:
+        return None, {}
+    from rrtcolearn import dynobench
+
+    read = dynobench.read_problem(problem)
+    return read, dynobench.config_options(read)
+
+
+def _write_dynobench(read, p, system, plan_path: Path) -> None:
+    """The solved plan beside ``plan_path`` in dynobench's result format."""
+    if read is None or not p.solved:
+        return
+    from rrtcolearn import dynobench
+    from rrtcolearn.evaluate import sample_path
+
+    dynobench.write_result(plan_path.with_suffix(".dynobench.yaml"),
+                           dynobench.result(read, sample_path(system, p)))
 
 
 def _printable(message: str) -> str:
@@ -142,7 +172,7 @@ def _guard(fn):
 def _config(config: Path | None, seed: int | None, overrides: list[str] | None,
             run_dir: Path | None = None, u_max: float | None = None,
             obstacles: list[str] | None = None, system: str | None = None,
-            offline_budget: float | None = None) -> Config:
+            offline_budget: float | None = None, posed: dict | None = None) -> Config:
     from rrtcolearn.config import add_obstacles, load_config, read_toml
 
     base = {}
@@ -150,6 +180,8 @@ def _config(config: Path | None, seed: int | None, overrides: list[str] | None,
         base = read_toml(run_dir / "config.toml")
     options = _options({("system", "name"): system, ("system", "u_max"): u_max,
                         ("generate", "offline_budget"): offline_budget})
+    for section, values in (posed or {}).items():  # a dynobench problem's, under the options
+        options[section] = {**values, **options.get(section, {})}
     cfg = add_obstacles(load_config(config, overrides, base=base, options=options),
                         list(obstacles or []))
     if seed is not None:
@@ -477,6 +509,7 @@ def plan(
     plot: Annotated[bool, typer.Option(
         "--plot", help="also write a PNG of the tree beside the plan file (imports "
         "matplotlib: about half a second more)")] = False,
+    dynobench: DynobenchOpt = None,
 ) -> None:
     """Plan one query with a fitted model; writes the plan JSON (with --plot also a PNG of
     the tree). With --queries, plans every query of a file into a directory of plan files."""
@@ -501,6 +534,11 @@ def plan(
         _, model_cfg, system = model_info
         if seed is not None and seed < 0:
             raise ConfigError("--seed must be a non-negative integer")
+        read, posed = _dynobench(dynobench)
+        if read is not None and posed["system"]["name"] != model_cfg.system.name:
+            raise ConfigError(f"--dynobench {dynobench}: a {read.robot} problem; the model "
+                              f"is of {model_cfg.system.name}")
+        options["plan"] = {**posed.get("plan", {}), **options.get("plan", {})}
         # the model's own configuration is the base; only its plan section may change here
         cfg = load_config(config, list(set_ or []), base={
             "plan": model_cfg.plan.model_dump(),
@@ -528,6 +566,7 @@ def plan(
                           config=p_cfg, time_limit=cfg.plan.time_limit,
                           max_iterations=cfg.plan.max_iterations)
         _write_plan(p, out_path, fitted.system.state_names, plot=plot)
+        _write_dynobench(read, p, fitted.system, out_path)
         _print_summary(f"plan -> {out_path}", _plan_summary(p))
     _guard(body)
 
@@ -604,16 +643,18 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         set_: SetOpt = None, u_max: UMaxOpt = None, obstacle: ObstacleOpt = None,
         workers: WorkersOpt = None, scheduler: SchedulerOpt = None,
         dask_local: DaskLocalOpt = None, system: SystemOpt = None,
-        offline_budget: BudgetOpt = None) -> None:
-    """The whole pipeline: generate, clean, fit, and plan the configured query."""
+        offline_budget: BudgetOpt = None, dynobench: DynobenchOpt = None) -> None:
+    """The whole pipeline: generate, clean, fit, and plan the configured query (with
+    --dynobench: a dynobench problem's robot and query)."""
     def body():
         from rrtcolearn import pipeline
         from rrtcolearn.data.store import write_json
         from rrtcolearn.parallel import ExecutionSettings
 
         settings = ExecutionSettings.from_options(workers, scheduler, dask_local)
+        read, posed = _dynobench(dynobench)
         cfg = _config(config, seed, set_, u_max=u_max, obstacles=obstacle, system=system,
-                      offline_budget=offline_budget)
+                      offline_budget=offline_budget, posed=posed)
         run_dir = _run_dir(out, cfg)
         t0 = time.perf_counter()
         figures = {"run_dir": str(run_dir)}
@@ -628,6 +669,7 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
                           cfg.seed, config=fitted.config, time_limit=cfg.plan.time_limit,
                           max_iterations=cfg.plan.max_iterations)
         _write_plan(p, run_dir / "plan.json", fitted.system.state_names)
+        _write_dynobench(read, p, fitted.system, run_dir / "plan.json")
         figures |= _plan_summary(p)
         figures["wall_s"] = round(time.perf_counter() - t0, 2)
         figures["derived"] = dict(sorted(fitted.config.derived.items()))

@@ -17,7 +17,9 @@ import tomli_w
 from pydantic import (
     BaseModel,
     ConfigDict,
+    Discriminator,
     Field,
+    Tag,
     ValidationError,
     field_validator,
     model_validator,
@@ -207,7 +209,60 @@ class HalfPlaneObstacle(_Section):
     offset: float
 
 
-ObstacleConfig = Annotated[BoxObstacle | HalfPlaneObstacle, Field(discriminator="type")]
+class _ShapeKeys(_Section):
+    """The keys of a workspace shape (rrtcolearn.geometry), checked there."""
+
+    shape: Literal["box", "disc", "polygon", "sphere"]
+    center: list[float] | None = None
+    size: list[float] | None = None
+    angle: float | None = None
+    radius: float | None = None
+    vertices: list[list[float]] | None = None
+
+    def spec(self) -> dict[str, Any]:
+        """The keys given, as rrtcolearn.geometry reads them."""
+        return {k: v for k, v in self.model_dump().items() if v is not None and k != "type"}
+
+
+class ShapeObstacle(_ShapeKeys):
+    """Forbidden shape in workspace coordinates, which plan.body must not touch: a box
+    (center, size[, angle]), disc (center, radius), convex polygon (vertices) or sphere."""
+
+    type: Literal["shape"] = "shape"
+
+    @model_validator(mode="after")
+    def _valid(self) -> ShapeObstacle:
+        from rrtcolearn.geometry import shape_from_dict
+        shape_from_dict(self.spec())
+        return self
+
+
+class BodyConfig(_ShapeKeys):
+    """The robot's body: a shape in its own frame (box size, disc radius, ...) and ``pose``,
+    the state indices placing it: [ix, iy] or [ix, iy, itheta] (planar), [ix, iy, iz] (3-D)."""
+
+    pose: list[int]
+
+    @model_validator(mode="after")
+    def _valid(self) -> BodyConfig:
+        from rrtcolearn.geometry import Body
+        Body.from_dict(self.spec())
+        return self
+
+
+def _obstacle_kind(value: Any) -> str | None:
+    # workspace shapes are written with `shape = ...`; state-space ones with `type = ...`
+    if isinstance(value, dict):
+        return "shape" if "shape" in value else value.get("type")
+    return getattr(value, "type", None)
+
+
+ObstacleConfig = Annotated[
+    Annotated[BoxObstacle, Tag("box")] | Annotated[HalfPlaneObstacle, Tag("halfplane")]
+    | Annotated[ShapeObstacle, Tag("shape")],
+    Discriminator(_obstacle_kind, custom_error_type="obstacle_kind",
+                  custom_error_message="an obstacle needs type = 'box' or 'halfplane' "
+                  "(state space) or shape = 'box', 'disc', 'polygon' or 'sphere' (workspace)")]
 
 
 class PlanConfig(_Section):
@@ -243,7 +298,13 @@ class PlanConfig(_Section):
         "exact extremals or the LQR loop, and return the cheapest path, its best cost "
         "against CPU in the plan's extra.anytime.progress (rrtcolearn.anytime, "
         "rrtcolearn.planning.improve)")
-    obstacles: list[ObstacleConfig] = Field(default_factory=list)
+    obstacles: list[ObstacleConfig] = Field(
+        default_factory=list, description="state-space regions (type = 'box', 'halfplane') "
+        "and workspace shapes the body must not touch (shape = 'box', 'disc', 'polygon', "
+        "'sphere'; rrtcolearn.geometry)")
+    body: BodyConfig | None = Field(
+        None, description="the robot's body among the workspace shapes: a shape and the "
+        "state indices of its pose, e.g. shape = 'box', size = [0.5, 0.25], pose = [0, 1, 2]")
     extend_distance: float | None = Field(
         None, ge=0, description="move random targets to within this (weighted) distance of "
         "their nearest node; 0: off, the paper's planner; none: derived (off where random "
@@ -301,6 +362,30 @@ class PlanConfig(_Section):
     input_limit: Literal["reject", "cut"] = Field(
         "reject", description="with system.limit_mode = 'truncate': an edge whose input "
         "exceeds u_max is rejected, or cut before it")
+
+    @model_validator(mode="after")
+    def _workspace(self) -> PlanConfig:
+        plan_obstacles(self)  # shapes and body agree (2-D or 3-D); a shape needs the body
+        return self
+
+
+def plan_obstacles(plan: PlanConfig) -> list[dict[str, Any]]:
+    """plan.obstacles as the planner reads them: the state-space ones, and the workspace
+    shapes with plan.body as one obstacle {type = 'workspace', body, shapes}."""
+    from rrtcolearn.geometry import Workspace
+    shapes = [o.spec() for o in plan.obstacles if isinstance(o, ShapeObstacle)]
+    out = [o.model_dump() for o in plan.obstacles if not isinstance(o, ShapeObstacle)]
+    if shapes and plan.body is None:
+        raise ValueError("body: workspace obstacles (shape = ...) need the robot's body, "
+                         "e.g. [plan.body] shape = 'box', size = [0.5, 0.25], pose = [0, 1, 2]")
+    if shapes:
+        spec = {"type": "workspace", "body": plan.body.spec(), "shapes": shapes}
+        try:
+            Workspace.from_dict(spec)
+        except ValueError as exc:
+            raise ValueError(f"obstacles: {exc}") from None
+        out.append(spec)
+    return out
 
 
 class ProblemSpec(_Section):
@@ -438,7 +523,8 @@ def _format_error(exc: ValidationError) -> str:
         return f"config: unknown key {key!r}{hint}"
     msg = err["msg"].removeprefix("Value error, ")
     field, _, rest = msg.partition(": ")
-    if isinstance(err.get("input"), dict) and field in err["input"]:
+    if isinstance(err.get("input"), dict) and (
+            field in err["input"] or field in _known_keys(Config, (*loc, ""))):
         key, msg = f"{key}.{field}", rest  # a section-wide check that names its key
     # the value given, not a whole section's (a section-wide check names its key itself)
     got = f" (got {err['input']!r})" if "input" in err and err["type"] != "missing" and \
@@ -455,7 +541,9 @@ def validate(data: dict[str, Any]) -> Config:
 
 
 def parse_obstacle(spec: str) -> dict[str, Any]:
-    """``box:lo1,..,lon,hi1,..,hin`` or ``halfplane:n1,..,nn,offset`` -> obstacle config."""
+    """An ``--obstacle`` spec -> obstacle config: in state space ``box:lo1,..,lon,hi1,..,hin``
+    or ``halfplane:n1,..,nn,offset``; in the workspace (for plan.body) ``rect:cx,cy,w,h[,angle]``,
+    ``disc:cx,cy,r``, ``polygon:x1,y1,x2,y2,...``, ``sphere:cx,cy,cz,r``."""
     kind, _, values = spec.partition(":")
     try:
         numbers = [float(v) for v in values.split(",")] if values else []
@@ -473,8 +561,22 @@ def parse_obstacle(spec: str) -> dict[str, Any]:
             raise ConfigError(f"--obstacle {spec!r}: a half-plane needs a normal and an "
                               "offset, e.g. halfplane:0,1,2.5")
         return {"type": "halfplane", "normal": numbers[:-1], "offset": numbers[-1]}
+    shapes = {"rect": (4, 5, "rect:cx,cy,w,h[,angle]"), "disc": (3, 3, "disc:cx,cy,r"),
+              "sphere": (4, 4, "sphere:cx,cy,cz,r"), "polygon": (6, 10**6, "polygon:x1,y1,...")}
+    if kind in shapes:
+        least, most, form = shapes[kind]
+        if not least <= len(numbers) <= most or (kind == "polygon" and len(numbers) % 2):
+            raise ConfigError(f"--obstacle {spec!r}: give {form}")
+        if kind == "rect":
+            out = {"shape": "box", "center": numbers[:2], "size": numbers[2:4]}
+            return {**out, "angle": numbers[4]} if len(numbers) == 5 else out
+        if kind == "polygon":
+            return {"shape": "polygon", "vertices": [numbers[i:i + 2]
+                                                     for i in range(0, len(numbers), 2)]}
+        return {"shape": kind, "center": numbers[:-1], "radius": numbers[-1]}
     raise ConfigError(f"--obstacle {spec!r}: unknown type {kind!r}; use box:... or "
-                      "halfplane:...")
+                      "halfplane:... (state space), rect:..., disc:..., polygon:... or "
+                      "sphere:... (workspace)")
 
 
 def add_obstacles(config: Config, specs: list[str]) -> Config:

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rrtcolearn import __version__, derive
-from rrtcolearn.config import Config, read_toml, to_toml, validate
+from rrtcolearn.config import Config, plan_obstacles, read_toml, to_toml, validate
 from rrtcolearn.data.dataset import Dataset
 from rrtcolearn.data.store import (
     ShardStore,
@@ -602,7 +602,7 @@ def make_problem(system: System, config: Config, start, goal, goal_tolerance: fl
         raise ConfigError("a model of the unbounded system can plan under a single u_max "
                           "only (by truncation); train a model with the limits instead")
     if obstacles is _FROM_CONFIG:
-        obstacles = [o.model_dump() for o in config.plan.obstacles]
+        obstacles = plan_obstacles(config.plan)
     defaults = system.defaults
     if goal_fn is None and "goal_fn" in defaults and defaults.get("goal") is not None \
             and np.array_equal(np.asarray(goal, dtype=float),

@@ -48,6 +48,39 @@ def plot_obstacles(ax, obstacles: list[dict], *, turns: tuple[int, ...] = (-1, 0
     return artists
 
 
+def plot_workspace(ax, spec: dict, states: np.ndarray, n_bodies: int = 12) -> list:
+    """A planar workspace obstacle (`rrtcolearn.geometry`, plan-file form): its shapes, and
+    the body at ``n_bodies`` states evenly spaced along ``states`` (the path), first and
+    last included."""
+    from rrtcolearn.geometry import Disc, Workspace
+    ws = Workspace.from_dict(spec, states.shape[1])
+    if ws.body.dim != 2:
+        return []
+    artists = []
+    style = {"facecolor": "tab:gray", "alpha": 0.45, "edgecolor": "k", "lw": 0.8}
+    for k, ob in enumerate(ws.obstacles):
+        label = "workspace obstacle" if k == 0 else None
+        patch = Circle(tuple(ob.center), ob.radius, label=label, **style) \
+            if isinstance(ob, Disc) else Polygon(ob.vertices(), label=label, **style)
+        artists.append(ax.add_patch(patch))
+    ax.set_aspect("equal", adjustable="datalim")  # the bodies' true shapes
+    picks = np.unique(np.linspace(0, len(states) - 1, n_bodies).round().astype(int))
+    poses = ws.body.poses(states[picks])
+    body_style = {"fill": False, "edgecolor": "tab:purple", "lw": 0.9}
+    for i in range(len(picks)):
+        for b, shape in enumerate(ws.body.shapes):
+            x, y, th = poses[i, b]
+            rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+            label = "body" if i == 0 and b == 0 else None
+            if isinstance(shape, Disc):
+                patch = Circle(tuple(rot @ shape.center + (x, y)), shape.radius, label=label,
+                               **body_style)
+            else:
+                patch = Polygon(shape.vertices() @ rot.T + (x, y), label=label, **body_style)
+            artists.append(ax.add_patch(patch))
+    return artists
+
+
 def _clip_halfplane(poly: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray:
     """The part of a convex polygon where normal . x >= offset (Sutherland-Hodgman)."""
     out = []
@@ -89,6 +122,11 @@ def plot_tree(ax, plan: Plan, *, max_edges: int | None = None,
     if plan.obstacles and dims == (0, 1):
         ax.autoscale_view()
         artists += plot_obstacles(ax, plan.obstacles)
+    for ob in plan.obstacles:
+        if ob["type"] == "workspace" and tuple(ob["body"].get("pose", ())[:2]) == dims:
+            path_states = np.vstack([tree.trajectories[k] for k in path[1:]]) \
+                if len(path) > 1 else plan.start[None]
+            artists += plot_workspace(ax, ob, path_states)
     xl, yl = labels or (r"$\theta$ [rad]", r"$\omega$ [rad/s]")
     ax.set_xlabel(xl)
     ax.set_ylabel(yl)
@@ -134,11 +172,15 @@ def tree_figure(plan: Plan, state_names: tuple[str, ...] | None = None):
     n = len(plan.start)
     if n <= 2 or state_names is None or n % 2:
         fig, ax = plt.subplots(figsize=(6.4, 4.8))
-        named = state_names is not None and n == 2 and plan.system != "pendulum"
+        named = state_names is not None and n >= 2 and plan.system != "pendulum"
         plot_tree(ax, plan, labels=tuple(state_names[:2]) if named else None)
         return fig
     half = n // 2
-    fig, axes = plt.subplots(1, half, figsize=(5.2 * half, 4.4))
-    for k, ax in enumerate(np.atleast_1d(axes)):
-        plot_tree(ax, plan, dims=(k, k + half), labels=(state_names[k], state_names[k + half]))
+    # a body among workspace shapes gets a panel of its own: the tree in its (x, y)
+    planes = [tuple(ob["body"]["pose"][:2]) for ob in plan.obstacles
+              if ob["type"] == "workspace" and len(ob["body"].get("pose", ())) in (2, 3)]
+    panels = [(k, k + half) for k in range(half)] + planes[:1]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.4))
+    for (i, j), ax in zip(panels, np.atleast_1d(axes), strict=True):
+        plot_tree(ax, plan, dims=(i, j), labels=(state_names[i], state_names[j]))
     return fig

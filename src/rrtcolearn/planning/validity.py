@@ -1,7 +1,8 @@
 """State validity: obstacles in state space (OMPL's StateValidityChecker, batched).
 
 A checker maps states (N, n) to a (N,) bool array, True where the state is allowed. The
-library ships axis-aligned boxes and half-planes; any callable with that signature works too.
+library ships axis-aligned boxes and half-planes, and a robot's body among workspace shapes
+(`rrtcolearn.geometry.Workspace`); any callable with that signature works too.
 Obstacles are an online concern: the same dataset and models serve any set of them.
 """
 
@@ -11,6 +12,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
+from rrtcolearn.geometry import Workspace
 
 StateValidityChecker = Callable[[np.ndarray], np.ndarray]
 
@@ -43,7 +46,7 @@ class HalfPlane:
         return {"type": "halfplane", "normal": self.normal.tolist(), "offset": self.offset}
 
 
-Obstacle = Box | HalfPlane
+Obstacle = Box | HalfPlane | Workspace
 
 
 def obstacle_from_dict(spec: dict, n_states: int) -> Obstacle:
@@ -67,7 +70,9 @@ def obstacle_from_dict(spec: dict, n_states: int) -> Obstacle:
         if not np.any(normal) or not np.isfinite(offset):
             raise ValueError("a half-plane needs a non-zero normal and a finite offset")
         return HalfPlane(normal, offset)
-    raise ValueError(f"unknown obstacle type {kind!r}; use 'box' or 'halfplane'")
+    if kind == "workspace":
+        return Workspace.from_dict(spec, n_states)
+    raise ValueError(f"unknown obstacle type {kind!r}; use 'box', 'halfplane' or 'workspace'")
 
 
 def in_turn(obstacles: Sequence[Obstacle], angle_low: dict[int, float]) -> list[Obstacle]:
