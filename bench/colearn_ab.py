@@ -67,7 +67,7 @@ def run_system(name: str, n_sims: int, rounds: int, seeds: int, iterations: int,
                max_duration=g.max_duration)
     stream = seed_stream(data_seed, "generate")
     c0 = time.process_time()
-    base, st = generate_data(system, stream, n_sims, **sim)
+    base, _ = generate_data(system, stream, n_sims, **sim)
     base_cpu = time.process_time() - c0  # serial: the simulations ran in this process
 
     def refit(d):
