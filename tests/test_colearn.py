@@ -1,6 +1,9 @@
 """The co-learning loop (data.colearn): deterministic per seed, resumable after an
 interruption to the same result, and its aimed data optimal extremals (H* = 0 at their
-starts, checked against the pendulum's Hamiltonian written out by hand)."""
+starts, checked against the pendulum's Hamiltonian written out by hand). And Alg. 3 on the
+learners' features: blind to shifts along invariant coordinates, the raw rows without."""
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -20,7 +23,7 @@ FIRST_ID = N
 def setup():
     cfg = Config.model_validate({"system": {"name": "pendulum"},
                                  "generate": {"n_simulations": N, "max_cost": 2.0},
-                                 "learn": {"learner": "knn"}})
+                                 "clean": {"k_max": 500}, "learn": {"learner": "knn"}, "seed": 3})
     system = pipeline.system_from_config(cfg)
     cfg = pipeline.resolve(cfg, system)
     g = cfg.generate
@@ -29,9 +32,7 @@ def setup():
     data, _ = generate_data(system, 3, N, **opts)
 
     def refit(d):
-        cleaned, _ = clean_data(d, d=cfg.clean.d, k_max=500, seed=pipeline.seed_stream(3, "clean"),
-                                scale=system.metric_scale)
-        return pipeline.fit_functions(system, cleaned, cfg)
+        return pipeline.fit_functions(system, pipeline.clean_dataset(cfg, system, d)[0], cfg)
 
     return system, data, refit, opts
 
@@ -89,3 +90,38 @@ def test_pipeline_records_the_rounds(tmp_path):
     assert stats.points == len(data) and (data.simulation >= N).any()
     assert "generate.colearn" in pipeline.read_run_config(tmp_path).derived
     assert not (tmp_path / "shards").exists()
+
+
+def test_cleaning_sees_the_learners_features():
+    """The cart-pole's cart position p is invariant: rows shifted along p by a different
+    amount each are the same pairs to the learners, and to the cleaning; a system without
+    invariant coordinates (the pendulum) is cleaned on its raw rows, bit for bit."""
+    cfg = Config.model_validate({"system": {"name": "cartpole"}, "seed": 4,
+                                 "generate": {"n_simulations": 200, "max_cost": 2.0},
+                                 "clean": {"k_max": 300, "d": 0.2}})
+    system = pipeline.system_from_config(cfg)
+    assert system.invariant_coordinates == (0,)
+    data, _ = generate_data(system, 4, 200, max_cost=2.0)
+    shift = np.zeros_like(data.x0)
+    shift[:, 0] = np.random.default_rng(0).uniform(-3.0, 3.0, len(data))
+    moved = dataclasses.replace(data, x0=data.x0 + shift, x1=data.x1 + shift)
+    kept, res = pipeline.clean_dataset(cfg, system, data)
+    _, res_moved = pipeline.clean_dataset(cfg, system, moved)
+    assert 0 < len(kept) < len(data)  # the cleaning removed something
+    np.testing.assert_array_equal(res.keep, res_moved.keep)
+    # the raw rows (the cleaning before) are not blind to the shift
+    raw, _ = clean_data(data, d=0.2, k_max=300, seed=pipeline.seed_stream(4, "clean"),
+                        scale=system.metric_scale)
+    raw_moved, _ = clean_data(moved, d=0.2, k_max=300, seed=pipeline.seed_stream(4, "clean"),
+                              scale=system.metric_scale)
+    assert len(raw) != len(raw_moved) or not np.array_equal(raw.simulation,
+                                                            raw_moved.simulation)
+
+    pcfg = Config.model_validate({"system": {"name": "pendulum"}, "seed": 4,
+                                  "clean": {"k_max": 300}})
+    pend = pipeline.system_from_config(pcfg)
+    pdata, _ = generate_data(pend, 4, 300, max_cost=2.0)
+    new, _ = pipeline.clean_dataset(pcfg, pend, pdata)
+    old, _ = clean_data(pdata, d=pcfg.clean.d, k_max=300, method=pcfg.clean.method,
+                        seed=pipeline.seed_stream(4, "clean"), scale=pend.metric_scale)
+    assert digest(new.arrays()) == digest(old.arrays())

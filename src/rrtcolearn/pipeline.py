@@ -295,18 +295,13 @@ def _colearn(config: Config, system: System, data: Dataset, stats: GenerationSta
     fits as `clean` and `fit` would. Finished rounds are kept under ``shards/colearn`` (keyed
     by the generation key) for a resumed run; the rounds are written to ``colearn.json`` and
     summarised in the config's [derived]."""
-    from rrtcolearn.data.clean import clean_data
     from rrtcolearn.data.colearn import colearn
 
     g = config.generate
     store = run_dir / "shards" / "colearn" / key[:16]
 
     def refit(d: Dataset) -> LearnedFunctions:
-        c = config.clean
-        cleaned, _ = clean_data(d, d=c.d, k_max=c.k_max, method=c.method,
-                                seed=seed_stream(config.seed, "clean"),
-                                scale=system.metric_scale)
-        return fit_functions(system, cleaned, config)
+        return fit_functions(system, clean_dataset(config, system, d)[0], config)
 
     cpu0 = time.process_time()
     out, records = colearn(
@@ -383,21 +378,30 @@ def clean(config: Config, run_dir: str | Path,
           progress: Callable[[int, int], None] | None = None
           ) -> tuple[Dataset, CleaningResult]:
     """Alg. 3 on the run's ``dataset.npz``; writes ``cleaned.npz``."""
-    from rrtcolearn.data.clean import clean_data
-
     run_dir = Path(run_dir)
     system = system_from_config(config)
     raw, raw_meta = load_dataset(run_dir / DATASET_FILE, system.name)
-    c = config.clean
-    cleaned, result = clean_data(raw, d=c.d, k_max=c.k_max, method=c.method,
-                                 seed=seed_stream(config.seed, "clean"), progress=progress,
-                                 scale=system.metric_scale)
+    cleaned, result = clean_dataset(config, system, raw, progress)
     stats = {"raw_points": len(raw), "kept_points": len(cleaned), "draws": result.draws,
              "dataset_sha256": raw_meta["sha256"]}
     config = _with_sections(config, raw_meta, ("system", "generate"))
     save_config(config, run_dir)
     save_dataset(run_dir / CLEANED_FILE, cleaned, _meta(config, system, stats=stats))
     return cleaned, result
+
+
+def clean_dataset(config: Config, system: System, raw: Dataset,
+                  progress: Callable[[int, int], None] | None = None
+                  ) -> tuple[Dataset, CleaningResult]:
+    """Alg. 3 with the configured settings on the inputs the learners see (the system's
+    query features, `learn.features.learning_geometry`, weighted by its metric scale)."""
+    from rrtcolearn.data.clean import clean_data
+
+    c = config.clean
+    features, _ = learning_geometry(system, config.learn.periodic)
+    return clean_data(raw, d=c.d, k_max=c.k_max, method=c.method,
+                      seed=seed_stream(config.seed, "clean"), progress=progress,
+                      scale=system.metric_scale, features=features)
 
 
 def _with_sections(config: Config, meta: dict, sections: tuple[str, ...]) -> Config:
