@@ -9,7 +9,8 @@ seed 1), then
 - ``off``: uniform simulations only, as many as ``on`` used in all (the first
   ``--simulations`` of them the same as ``on``'s: one seeded stream).
 
-Each arm is cleaned and fitted as `rrtcolearn run` would, then measured: the hit rate on one
+Each arm is cleaned and fitted as `rrtcolearn run` would (`pipeline.clean_dataset`,
+`pipeline.fit_functions`), then measured: the hit rate on one
 fixed sample of planner-like pairs (`data.colearn.sample_pairs` from the uniform data, its
 own stream; the same pairs for both arms), held-out J, U and landing errors
 (`evaluate.held_out_errors` on uniform simulations of another seed), and the system's default
@@ -36,14 +37,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `examples`, `bench` importable
 
-from bench.invariance_ab import duration_share, offline
+from bench.invariance_ab import duration_share
 
 from rrtcolearn.config import load_config
-from rrtcolearn.data.clean import clean_data
 from rrtcolearn.data.colearn import HELD_PAIRS, LANDING_TOLERANCE, classify, colearn, sample_pairs
 from rrtcolearn.data.generate import generate_data
 from rrtcolearn.evaluate import held_out_errors
 from rrtcolearn.pipeline import (
+    FittedModel,
+    clean_dataset,
     fit_functions,
     plan,
     query_states,
@@ -71,9 +73,7 @@ def run_system(name: str, n_sims: int, rounds: int, seeds: int, iterations: int,
     base_cpu = time.process_time() - c0  # serial: the simulations ran in this process
 
     def refit(d):
-        cleaned, _ = clean_data(d, d=cfg.clean.d, k_max=cfg.clean.k_max, method=cfg.clean.method,
-                                seed=seed_stream(data_seed, "clean"), scale=system.metric_scale)
-        return fit_functions(system, cleaned, cfg)
+        return fit_functions(system, clean_dataset(cfg, system, d)[0], cfg)
 
     c0 = time.process_time()
     on_data, records = colearn(system, base, refit, seed=stream, rounds=rounds,
@@ -93,7 +93,11 @@ def run_system(name: str, n_sims: int, rounds: int, seeds: int, iterations: int,
     rows = {}
     for arm, data, gen_cpu in (("off", off_data, off_cpu),
                                ("on", on_data, base_cpu + loop_cpu)):
-        model, cpu = offline(cfg, system, data, data_seed)
+        c0 = time.process_time()
+        functions = refit(data)
+        model = FittedModel(system, cfg, functions, functions.max_duration_,
+                            g.max_state_distance)
+        cpu = time.process_time() - c0
         hit, valid, _ = classify(system, model.functions, pairs,
                                  tolerance=LANDING_TOLERANCE * g.max_state_distance,
                                  time_weight=cfg.system.time_weight, dt=g.dt)

@@ -351,7 +351,7 @@ def converge_simulations(config: Config, run_dir: str | Path,
     while True:
         t0 = time.process_time()
         stage = config.model_copy(update={"generate": g.model_copy(update={
-            "n_simulations": n, "offline_budget": None})})
+            "n_simulations": n, "offline_budget": None, "colearn_rounds": 0})})
         _, stats = generate(stage, run_dir)
         cleaned, _ = clean(stage, run_dir)
         functions = fit_functions(system, cleaned, stage.model_copy(update={"learn": knn}))
