@@ -12,7 +12,8 @@ seed 1), then
 Each arm is cleaned and fitted as `rrtcolearn run` would (`pipeline.clean_dataset`,
 `pipeline.fit_functions`), then measured: the hit rate on one
 fixed sample of planner-like pairs (`data.colearn.sample_pairs` from the uniform data, its
-own stream; the same pairs for both arms), held-out J, U and landing errors
+own stream; the same pairs for both arms; the loop's tolerance, the median landing error of
+the uniform data's functions on its own held-out pairs), held-out J, U and landing errors
 (`evaluate.held_out_errors` on uniform simulations of another seed), and the system's default
 query planned for ``--seeds`` seeds with an iteration budget (no time limit): success, the
 planning CPU median to the first solution, the share of the first path's duration made by
@@ -40,7 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `examples`, `ben
 from bench.invariance_ab import duration_share
 
 from rrtcolearn.config import load_config
-from rrtcolearn.data.colearn import HELD_PAIRS, LANDING_TOLERANCE, classify, colearn, sample_pairs
+from rrtcolearn.data.colearn import HELD_PAIRS, colearn, landing_errors, sample_pairs
 from rrtcolearn.data.generate import generate_data
 from rrtcolearn.evaluate import held_out_errors
 from rrtcolearn.pipeline import (
@@ -98,9 +99,9 @@ def run_system(name: str, n_sims: int, rounds: int, seeds: int, iterations: int,
         model = FittedModel(system, cfg, functions, functions.max_duration_,
                             g.max_state_distance)
         cpu = time.process_time() - c0
-        hit, valid, _ = classify(system, model.functions, pairs,
-                                 tolerance=LANDING_TOLERANCE * g.max_state_distance,
-                                 time_weight=cfg.system.time_weight, dt=g.dt)
+        landing, valid, _ = landing_errors(system, model.functions, pairs,
+                                           time_weight=cfg.system.time_weight, dt=g.dt)
+        hit = landing <= records[0].tolerance  # the loop's round-0 tolerance, both arms
         err = held_out_errors(system, model.functions, held, n_queries=1000,
                               time_weight=cfg.system.time_weight, dt=g.dt)
         outcomes = []
@@ -114,7 +115,8 @@ def run_system(name: str, n_sims: int, rounds: int, seeds: int, iterations: int,
             return float(np.median([o[i] for o in ok])) if ok else None
 
         row = {"simulations": n_sims + extra, "points": len(data),
-               "hit_rate": float(hit.mean()), "V_accepts_pairs": float(valid.mean()),
+               "hit_rate": float(hit.mean()),
+               "landing_median": float(np.median(landing)), "V_accepts_pairs": float(valid.mean()),
                "J_rel_error_median": float(np.median(err.cost_rel_error)),
                "U_param_error_median": float(np.median(err.param_error)),
                "U_landing_mse_median": float(np.median(np.nan_to_num(err.steer_mse,

@@ -2,8 +2,9 @@
 
 Each round samples (x0, x1) pairs the way the planner asks for them (x0 a state the data's
 trajectories pass, x1 a target within the data's reach of it), finds those the learned
-steering fails on (V rejects the pair, or U's steering integrated from x0 lands farther than
-`LANDING_TOLERANCE` times the reach from x1), and starts optimal extremals at the failed x0
+steering fails on (V rejects the pair, or U's steering integrated from x0 lands farther from
+x1 than the tolerance: the median landing error of round 0's functions on the held-out pairs
+V accepts, so that round 0 hits about half of those), and starts optimal extremals at the failed x0
 with costate parameters near U's guess (on H* = 0 through the system's parametrisation);
 every RK4 step of them is a data point (Alg. 2). The functions are refitted and the hit rate
 (share of a fixed held-out sample of pairs that V accepts and that land) measured; the loop
@@ -31,7 +32,6 @@ from rrtcolearn.evaluate import landing_states
 from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.systems.base import System
 
-LANDING_TOLERANCE = 0.1  # a steering "lands" within this share of the data's reach of x1
 MIN_GAIN = 0.01  # stop once a round raised the hit rate by less (absolute share)
 PARAM_SPREAD = 0.05  # std of the aimed parameters around U's guess, share of their range
 HELD_PAIRS = 400  # held-out pairs the hit rate is measured on
@@ -46,6 +46,7 @@ class RoundRecord:
     points: int  # data points they gave
     failures: int  # of the round's sampled pairs, those the steering failed on
     hit_rate: float  # on the held-out pairs, after refitting with this round's data
+    tolerance: float  # the landing tolerance (plain norm), fixed by round 0
     cpu_s: float  # CPU of the round in this process (0 for a round loaded from the store)
 
 
@@ -72,21 +73,27 @@ def sample_pairs(system: System, data: Dataset, rng: np.random.Generator, n: int
     return np.hstack([x0, x1])
 
 
-def classify(system: System, functions: LearnedFunctions, X: np.ndarray, *,
-             tolerance: float, time_weight: float, dt: float
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(hit (Q,), V's acceptance (Q,), U's guess (Q, k+1)) of queries X: a hit is a pair V
-    accepts whose unperturbed steering (`evaluate.landing_states`) ends within
-    ``tolerance`` (plain norm) of x1."""
+def landing_errors(system: System, functions: LearnedFunctions, X: np.ndarray, *,
+                   time_weight: float, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(landing error (Q,), V's acceptance (Q,), U's guess (Q, k+1)) of queries X: the plain
+    distance from x1 at which U's unperturbed steering from x0 ends
+    (`evaluate.landing_states`); inf where V rejects the pair or the rollout has no finite
+    end."""
     ns = system.n_states
     _, steer, valid = functions.query(X)
-    hit = np.zeros(len(X), dtype=bool)
+    err = np.full(len(X), np.inf)
     rows = np.flatnonzero(valid)
     if rows.size:
         landed = landing_states(system, X[rows, :ns], steer[rows], time_weight, dt)
-        err = np.linalg.norm(landed - X[rows, ns:], axis=1)
-        hit[rows] = np.isfinite(err) & (err <= tolerance)
-    return hit, valid, steer
+        e = np.linalg.norm(landed - X[rows, ns:], axis=1)
+        err[rows] = np.where(np.isfinite(e), e, np.inf)
+    return err, valid, steer
+
+
+def median_landing(err: np.ndarray) -> float:
+    """The landing tolerance: the median finite landing error (inf when there is none)."""
+    finite = err[np.isfinite(err)]
+    return float(np.median(finite)) if finite.size else float("inf")
 
 
 def aimed_starts(system: System, x0: np.ndarray, guess: np.ndarray, rng: np.random.Generator,
@@ -117,7 +124,7 @@ def colearn(system: System, data: Dataset, refit: Callable[[Dataset], LearnedFun
     the records of rounds 0..k. ``store``: a directory keeping finished rounds (resume);
     ``stop_after``: return after that many rounds of this call (an interruption, for tests).
     """
-    reach, tol = max_state_distance, LANDING_TOLERANCE * max_state_distance
+    reach, tol = max_state_distance, None
     store = Path(store) if store is not None else None
     held = sample_pairs(system, data, _stream(seed, 2, 0), HELD_PAIRS, reach)
     sim = {"time_weight": time_weight, "dt": dt, "max_cost": max_cost,
@@ -131,6 +138,7 @@ def colearn(system: System, data: Dataset, refit: Callable[[Dataset], LearnedFun
             if aimed is not None:
                 parts.append(aimed)
             records.append(record)
+            tol = record.tolerance
             functions = None  # of an earlier dataset
         else:
             if stop_after is not None and computed >= stop_after:
@@ -142,9 +150,9 @@ def colearn(system: System, data: Dataset, refit: Callable[[Dataset], LearnedFun
                 rng = _stream(seed, 2, k)
                 functions = functions or refit(concatenate(parts))
                 X = sample_pairs(system, concatenate(parts), rng, 4 * simulations, reach)
-                hit, _, steer = classify(system, functions, X, tolerance=tol,
-                                         time_weight=time_weight, dt=dt)
-                failed = np.flatnonzero(~hit)
+                err, _, steer = landing_errors(system, functions, X,
+                                               time_weight=time_weight, dt=dt)
+                failed = np.flatnonzero(~(err <= tol))
                 failures = int(failed.size)
                 if failed.size == 0:
                     break
@@ -156,10 +164,13 @@ def colearn(system: System, data: Dataset, refit: Callable[[Dataset], LearnedFun
                 aimed = chunk.expand()
                 parts.append(aimed)
             functions = refit(concatenate(parts))
-            hit, _, _ = classify(system, functions, held, tolerance=tol,
-                                 time_weight=time_weight, dt=dt)
+            err, _, _ = landing_errors(system, functions, held, time_weight=time_weight,
+                                       dt=dt)
+            if tol is None:
+                tol = median_landing(err)
             record = RoundRecord(k, simulations if k else 0, len(aimed) if aimed else 0,
-                                 failures, float(hit.mean()), time.process_time() - cpu0)
+                                 failures, float(np.mean(err <= tol)), tol,
+                                 time.process_time() - cpu0)
             _save_round(store, k, aimed, record, system.name)
             records.append(record)
             computed += 1
