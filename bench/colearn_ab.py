@@ -6,6 +6,8 @@ seed 1), then
 
 - ``on``: up to ``--rounds`` co-learning rounds of simulations / 10 aimed simulations each
   (`rrtcolearn.data.colearn`, the loop `generate.colearn_rounds` runs), stopping by its rule;
+- ``on+shoot``: the same with each aimed start refined by Newton shooting onto its x1
+  (``shooting=True``; as many aimed simulations per round; the off arm matches ``on``);
 - ``off``: uniform simulations only, as many as ``on`` used in all (the first
   ``--simulations`` of them the same as ``on``'s: one seeded stream).
 
@@ -80,6 +82,13 @@ def run_system(name: str, n_sims: int, rounds: int, seeds: int, iterations: int,
     on_data, records = colearn(system, base, refit, seed=stream, rounds=rounds,
                                simulations=n_sims // 10, first_id=n_sims, **sim)
     loop_cpu = time.process_time() - c0
+    c0 = time.process_time()
+    shot_data, shot_records = colearn(system, base, refit, seed=stream, rounds=rounds,
+                                      simulations=n_sims // 10, first_id=n_sims,
+                                      shooting=True, **sim)
+    shot_cpu = time.process_time() - c0
+    print("  shooting: rounds " + ", ".join(f"{r.round}: hit {r.hit_rate:.1%}"
+                                             for r in shot_records), flush=True)
     extra = sum(r.simulations for r in records)
     c0 = time.process_time()
     off_data, _ = generate_data(system, stream, n_sims + extra, **sim)
@@ -93,7 +102,8 @@ def run_system(name: str, n_sims: int, rounds: int, seeds: int, iterations: int,
           + f"; {extra} aimed simulations", flush=True)
     rows = {}
     for arm, data, gen_cpu in (("off", off_data, off_cpu),
-                               ("on", on_data, base_cpu + loop_cpu)):
+                               ("on", on_data, base_cpu + loop_cpu),
+                               ("on+shoot", shot_data, base_cpu + shot_cpu)):
         c0 = time.process_time()
         functions = refit(data)
         model = FittedModel(system, cfg, functions, functions.max_duration_,
@@ -125,13 +135,14 @@ def run_system(name: str, n_sims: int, rounds: int, seeds: int, iterations: int,
                "learned_duration_share_median": med(2), "cost_median": med(3),
                "offline_cpu_s": gen_cpu + cpu, "per_seed": outcomes}
         rows[arm] = row
-        print(f"  {arm:>3}: hit {row['hit_rate']:.1%} (V accepts {row['V_accepts_pairs']:.1%}), "
+        print(f"  {arm:>8}: hit {row['hit_rate']:.1%} (V accepts {row['V_accepts_pairs']:.1%}), "
               f"J err {row['J_rel_error_median']:.3f}, U err {row['U_param_error_median']:.3f}, "
               f"landing MSE {row['U_landing_mse_median']:.3g}; success {row['success']}, CPU "
               f"median {_f(row['cpu_median_s'])} s, learned share "
               f"{_f(row['learned_duration_share_median'])}, cost {_f(row['cost_median'])}; "
               f"offline {row['offline_cpu_s']:.0f} s CPU", flush=True)
-    return {system.name: {"rounds": [r.__dict__ for r in records], **rows}}
+    return {system.name: {"rounds": [r.__dict__ for r in records],
+                          "shoot_rounds": [r.__dict__ for r in shot_records], **rows}}
 
 
 def _f(v) -> str:

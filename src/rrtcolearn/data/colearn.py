@@ -97,14 +97,19 @@ def median_landing(err: np.ndarray) -> float:
 
 
 def aimed_starts(system: System, x0: np.ndarray, guess: np.ndarray, rng: np.random.Generator,
-                 time_weight: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 time_weight: float, exact: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(x0, p, lam, valid): parameters near U's guess (``guess`` (S, k), each perturbed by
     `PARAM_SPREAD` of its range; circular ones wrapped, the others clipped to their range)
-    and their costates on H* = 0 at ``x0``."""
+    and their costates on H* = 0 at ``x0``. Rows where ``exact`` (S,) is True keep their
+    guess unperturbed (parameters shooting found)."""
     low, high = system.param_low, system.param_high
     span = high - low
     g = np.where(np.isfinite(guess), guess, low + span * rng.random(guess.shape))
-    p = g + PARAM_SPREAD * span * rng.standard_normal(g.shape)
+    noise = PARAM_SPREAD * span * rng.standard_normal(g.shape)
+    if exact is not None:
+        noise[exact] = 0.0
+    p = g + noise
     circ = np.asarray(system.param_circular, dtype=bool)
     p[:, circ] = low[circ] + np.mod(p[:, circ] - low[circ], span[circ])
     p[:, ~circ] = np.clip(p[:, ~circ], low[~circ], high[~circ])
@@ -116,13 +121,16 @@ def colearn(system: System, data: Dataset, refit: Callable[[Dataset], LearnedFun
             seed: int | np.random.SeedSequence, rounds: int, simulations: int, first_id: int,
             time_weight: float, dt: float, max_cost: float, max_state_distance: float,
             u_max: float | None = None, max_duration: float = 20.0,
-            store: str | Path | None = None, stop_after: int | None = None
-            ) -> tuple[Dataset, list[RoundRecord]]:
+            store: str | Path | None = None, stop_after: int | None = None,
+            shooting: bool = False) -> tuple[Dataset, list[RoundRecord]]:
     """The loop (module docstring) from the uniform ``data``: up to ``rounds`` rounds of
     ``simulations`` aimed simulations each (ids from ``first_id``), ``refit(data)`` giving
     the functions of a dataset. Returns the uniform data with every finished round's and
     the records of rounds 0..k. ``store``: a directory keeping finished rounds (resume);
-    ``stop_after``: return after that many rounds of this call (an interruption, for tests).
+    ``stop_after``: return after that many rounds of this call (an interruption, for tests);
+    ``shooting``: first refine U's guess for each failed pair by Newton shooting
+    (`planning.shooting.shoot`, to 1% of the reach, at most 10 steps) and start the
+    simulation unperturbed where it lands (the pair itself is then a data point).
     """
     reach, tol = max_state_distance, None
     store = Path(store) if store is not None else None
@@ -157,8 +165,13 @@ def colearn(system: System, data: Dataset, refit: Callable[[Dataset], LearnedFun
                 if failed.size == 0:
                     break
                 pick = failed[np.arange(simulations) % failed.size]
+                guess = steer[pick, :-1].copy()
+                exact = np.zeros(len(pick), dtype=bool)
+                if shooting:
+                    exact = _shoot(system, X[pick], steer[pick], guess, time_weight, dt,
+                                   max_duration, 0.01 * reach)
                 x0, p, lam, valid = aimed_starts(system, X[pick, :system.n_states],
-                                                 steer[pick, :-1], rng, time_weight)
+                                                 guess, rng, time_weight, exact)
                 ids = first_id + (k - 1) * simulations + np.flatnonzero(valid)
                 chunk, _ = simulate_from(system, x0[valid], p[valid], lam[valid], ids, **sim)
                 aimed = chunk.expand()
@@ -177,6 +190,30 @@ def colearn(system: System, data: Dataset, refit: Callable[[Dataset], LearnedFun
         if k > 0 and records[-1].hit_rate < records[-2].hit_rate + MIN_GAIN:
             break
     return concatenate(parts), records
+
+
+def _shoot(system: System, X: np.ndarray, steer: np.ndarray, guess: np.ndarray,
+           time_weight: float, dt: float, max_duration: float, tolerance: float
+           ) -> np.ndarray:
+    """Newton shooting from U's guess for each pair (first occurrence only); writes the
+    parameters found into ``guess`` and returns where it landed."""
+    from rrtcolearn.planning.shooting import shoot
+
+    ns = system.n_states
+    exact = np.zeros(len(X), dtype=bool)
+    seen = set()
+    for i in range(len(X)):
+        key = X[i].tobytes()
+        if key in seen or not np.all(np.isfinite(steer[i])) or steer[i, -1] <= 0:
+            continue
+        seen.add(key)
+        target = X[i, ns:]
+        res = shoot(system, X[i, :ns], steer[i, :-1], float(steer[i, -1]),
+                    lambda s, t=target: s - t, time_weight=time_weight, dt=dt,
+                    max_duration=max_duration, tolerance=tolerance, max_iterations=10)
+        if res is not None and np.all(np.isfinite(res.params)):
+            guess[i], exact[i] = res.params, True
+    return exact
 
 
 def _round_paths(store: Path, k: int) -> tuple[Path, Path]:
