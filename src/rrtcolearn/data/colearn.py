@@ -47,6 +47,7 @@ class RoundRecord:
     failures: int  # of the round's sampled pairs, those the steering failed on
     hit_rate: float  # on the held-out pairs, after refitting with this round's data
     tolerance: float  # the landing tolerance (plain norm), fixed by round 0
+    shot: int  # aimed starts that Newton shooting took onto their x1 (``shooting``)
     cpu_s: float  # CPU of the round in this process (0 for a round loaded from the store)
 
 
@@ -153,7 +154,7 @@ def colearn(system: System, data: Dataset, refit: Callable[[Dataset], LearnedFun
                 break
             cpu0 = time.process_time()
             aimed = None
-            failures = 0
+            failures = shot = 0
             if k > 0:
                 rng = _stream(seed, 2, k)
                 functions = functions or refit(concatenate(parts))
@@ -170,6 +171,7 @@ def colearn(system: System, data: Dataset, refit: Callable[[Dataset], LearnedFun
                 if shooting:
                     exact = _shoot(system, X[pick], steer[pick], guess, time_weight, dt,
                                    max_duration, 0.01 * reach)
+                shot = int(exact.sum())
                 x0, p, lam, valid = aimed_starts(system, X[pick, :system.n_states],
                                                  guess, rng, time_weight, exact)
                 ids = first_id + (k - 1) * simulations + np.flatnonzero(valid)
@@ -182,7 +184,7 @@ def colearn(system: System, data: Dataset, refit: Callable[[Dataset], LearnedFun
             if tol is None:
                 tol = median_landing(err)
             record = RoundRecord(k, simulations if k else 0, len(aimed) if aimed else 0,
-                                 failures, float(np.mean(err <= tol)), tol,
+                                 failures, float(np.mean(err <= tol)), tol, shot,
                                  time.process_time() - cpu0)
             _save_round(store, k, aimed, record, system.name)
             records.append(record)
