@@ -101,9 +101,11 @@ def run_system(name: str, n_sims: int, rounds: int, seeds: int, iterations: int,
           + ", ".join(f"{r.round}: hit {r.hit_rate:.1%}" for r in records)
           + f"; {extra} aimed simulations", flush=True)
     rows = {}
-    for arm, data, gen_cpu in (("off", off_data, off_cpu),
-                               ("on", on_data, base_cpu + loop_cpu),
-                               ("on+shoot", shot_data, base_cpu + shot_cpu)):
+    shot_extra = sum(r.simulations for r in shot_records)
+    for arm, data, gen_cpu, n_arm in (("off", off_data, off_cpu, n_sims + extra),
+                                      ("on", on_data, base_cpu + loop_cpu, n_sims + extra),
+                                      ("on+shoot", shot_data, base_cpu + shot_cpu,
+                                       n_sims + shot_extra)):
         c0 = time.process_time()
         functions = refit(data)
         model = FittedModel(system, cfg, functions, functions.max_duration_,
@@ -124,7 +126,7 @@ def run_system(name: str, n_sims: int, rounds: int, seeds: int, iterations: int,
         def med(i, ok=ok):
             return float(np.median([o[i] for o in ok])) if ok else None
 
-        row = {"simulations": n_sims + extra, "points": len(data),
+        row = {"simulations": n_arm, "points": len(data),
                "hit_rate": float(hit.mean()),
                "landing_median": float(np.median(landing)), "V_accepts_pairs": float(valid.mean()),
                "J_rel_error_median": float(np.median(err.cost_rel_error)),
