@@ -146,6 +146,10 @@ class GenerateConfig(_Section):
         "simulations run backwards in time from the query's goal: data points that end "
         "exactly there (they crowd Alg. 3's neighbour lists near the goal: keep to a few "
         "thousand)"))
+    colearn_rounds: int = Field(0, ge=0, le=50, description=(
+        "after the uniform data, up to this many co-learning rounds of n_simulations / 10 "
+        "simulations each, aimed at the (x0, x1) pairs the learned steering fails on "
+        "(docs/colearn.md); 0: off"))
     state_low: list[float] | None = Field(None, description="override the start-state box")
     state_high: list[float] | None = None
     param_low: list[float] | None = Field(None, description="override the costate-parameter range")

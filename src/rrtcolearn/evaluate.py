@@ -45,16 +45,9 @@ def held_out_errors(system: System, functions: LearnedFunctions, held_out: Datas
     accepted = np.flatnonzero(valid)
     pick = accepted[:n_queries]
     n = system.n_states
-    mse = np.empty(len(pick))
-    for q, i in enumerate(pick):  # one rollout per query: the compiled kernel does the work
-        lam, ok = system.costate_from_params(X[i : i + 1, :n], steer[i : i + 1, :-1],
-                                             time_weight)
-        if not ok[0]:
-            mse[q] = np.inf
-            continue
-        steps = max(1, round(steer[i, -1] / dt))
-        traj = rollout(system, np.r_[X[i, :n], lam[0], 0.0], time_weight, dt, steps)
-        mse[q] = np.mean((traj[-1, :n] - X[i, n:]) ** 2)
+    landed = landing_states(system, X[pick, :n], steer[pick], time_weight, dt)
+    mse = np.mean((landed - X[pick, n:]) ** 2, axis=1)
+    mse[~np.isfinite(mse)] = np.inf
     true_cost = held_out.cost[order][pick]
     true_params = held_out.params[order][pick]
     diff = np.abs(steer[pick, :-1] - true_params)
@@ -65,6 +58,23 @@ def held_out_errors(system: System, functions: LearnedFunctions, held_out: Datas
                          np.linalg.norm(diff, axis=1),
                          np.abs(steer[pick, -1] - held_out.duration[order][pick]),
                          len(accepted) / len(X))
+
+
+def landing_states(system: System, x0: np.ndarray, steer: np.ndarray, time_weight: float,
+                   dt: float) -> np.ndarray:
+    """Where U's unperturbed steering lands: the end states (Q, n) of the extremals from
+    ``x0`` (Q, n) with the parameters and durations ``steer`` (Q, k+1); NaN rows where the
+    parameters give no costate on H* = 0. The one rollout behind the held-out steering
+    error and the co-learning loop's hit rate (`data.colearn`)."""
+    n = system.n_states
+    out = np.full((len(x0), n), np.nan)
+    for i in range(len(x0)):  # one rollout per query: the compiled kernel does the work
+        lam, ok = system.costate_from_params(x0[i : i + 1], steer[i : i + 1, :-1], time_weight)
+        if not ok[0]:
+            continue
+        steps = max(1, round(steer[i, -1] / dt))
+        out[i] = rollout(system, np.r_[x0[i], lam[0], 0.0], time_weight, dt, steps)[-1, :n]
+    return out
 
 
 @dataclass(frozen=True)

@@ -37,6 +37,7 @@ from rrtcolearn.data.store import (
     read_json,
     save_dataset,
     write_checked_json,
+    write_json,
 )
 from rrtcolearn.errors import ArtefactError, ConfigError, EnvironmentProblem
 from rrtcolearn.learn.features import learning_geometry
@@ -268,11 +269,56 @@ def generate(config: Config, run_dir: str | Path,
     data, stats = merge(parts)
     stats = dataclasses.replace(stats, resumed_chunks=len(tasks) - len(todo),
                                 worker_cpu_s=computed_cpu[0])
+    if g.colearn_rounds:
+        data, stats, config = _colearn(config, system, data, stats, run_dir, key)
     save_config(config, run_dir)
     save_dataset(final, data, _meta(config, system, stats=dataclasses.asdict(stats),
                                     generation_key=key))
-    shards.remove()
+    _remove_tree(run_dir / "shards" / "colearn")
+    shards.remove()  # and shards/ itself, once empty
     return data, stats
+
+
+def _remove_tree(path: Path) -> None:
+    import shutil
+
+    if path.is_dir():
+        shutil.rmtree(path)
+
+
+COLEARN_FILE = "colearn.json"
+
+
+def _colearn(config: Config, system: System, data: Dataset, stats: GenerationStats,
+             run_dir: Path, key: str) -> tuple[Dataset, GenerationStats, Config]:
+    """The co-learning rounds (`data.colearn`) after the uniform data: each refit cleans and
+    fits as `clean` and `fit` would. Finished rounds are kept under ``shards/colearn`` (keyed
+    by the generation key) for a resumed run; the rounds are written to ``colearn.json`` and
+    summarised in the config's [derived]."""
+    from rrtcolearn.data.colearn import colearn
+
+    g = config.generate
+    store = run_dir / "shards" / "colearn" / key[:16]
+
+    def refit(d: Dataset) -> LearnedFunctions:
+        return fit_functions(system, clean_dataset(config, system, d)[0], config)
+
+    out, records = colearn(
+        system, data, refit, seed=seed_stream(config.seed, "generate"),
+        rounds=g.colearn_rounds, simulations=max(1, g.n_simulations // 10),
+        first_id=g.n_simulations + g.goal_simulations, time_weight=config.system.time_weight,
+        dt=g.dt, max_cost=config.max_cost, max_state_distance=g.max_state_distance,
+        u_max=config.system.truncation_limit, max_duration=g.max_duration, store=store)
+    write_json(run_dir / COLEARN_FILE, [dataclasses.asdict(r) for r in records])
+    rates = ", ".join(f"{r.hit_rate:.1%}" for r in records)
+    config = _record(config, [derive.Choice(
+        "generate.colearn", len(records) - 1,
+        f"{len(records) - 1} co-learning round(s); held-out hit rate by round: {rates}")])
+    # the loop runs in this process: its CPU is this process's, not the workers'
+    stats = dataclasses.replace(
+        stats, simulations=stats.simulations + sum(r.simulations for r in records),
+        points=len(out))
+    return out, stats, config
 
 
 CONVERGENCE_GAIN = 0.10  # stop doubling the data when the J error improves by less
@@ -305,7 +351,7 @@ def converge_simulations(config: Config, run_dir: str | Path,
     while True:
         t0 = time.process_time()
         stage = config.model_copy(update={"generate": g.model_copy(update={
-            "n_simulations": n, "offline_budget": None})})
+            "n_simulations": n, "offline_budget": None, "colearn_rounds": 0})})
         _, stats = generate(stage, run_dir)
         cleaned, _ = clean(stage, run_dir)
         functions = fit_functions(system, cleaned, stage.model_copy(update={"learn": knn}))
@@ -332,21 +378,30 @@ def clean(config: Config, run_dir: str | Path,
           progress: Callable[[int, int], None] | None = None
           ) -> tuple[Dataset, CleaningResult]:
     """Alg. 3 on the run's ``dataset.npz``; writes ``cleaned.npz``."""
-    from rrtcolearn.data.clean import clean_data
-
     run_dir = Path(run_dir)
     system = system_from_config(config)
     raw, raw_meta = load_dataset(run_dir / DATASET_FILE, system.name)
-    c = config.clean
-    cleaned, result = clean_data(raw, d=c.d, k_max=c.k_max, method=c.method,
-                                 seed=seed_stream(config.seed, "clean"), progress=progress,
-                                 scale=system.metric_scale)
+    cleaned, result = clean_dataset(config, system, raw, progress)
     stats = {"raw_points": len(raw), "kept_points": len(cleaned), "draws": result.draws,
              "dataset_sha256": raw_meta["sha256"]}
     config = _with_sections(config, raw_meta, ("system", "generate"))
     save_config(config, run_dir)
     save_dataset(run_dir / CLEANED_FILE, cleaned, _meta(config, system, stats=stats))
     return cleaned, result
+
+
+def clean_dataset(config: Config, system: System, raw: Dataset,
+                  progress: Callable[[int, int], None] | None = None
+                  ) -> tuple[Dataset, CleaningResult]:
+    """Alg. 3 with the configured settings on the inputs the learners see (the system's
+    query features, `learn.features.learning_geometry`, weighted by its metric scale)."""
+    from rrtcolearn.data.clean import clean_data
+
+    c = config.clean
+    features, _ = learning_geometry(system, config.learn.periodic)
+    return clean_data(raw, d=c.d, k_max=c.k_max, method=c.method,
+                      seed=seed_stream(config.seed, "clean"), progress=progress,
+                      scale=system.metric_scale, features=features)
 
 
 def _with_sections(config: Config, meta: dict, sections: tuple[str, ...]) -> Config:

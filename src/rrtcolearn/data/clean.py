@@ -17,6 +17,7 @@ import numba
 import numpy as np
 
 from rrtcolearn.data.dataset import Dataset
+from rrtcolearn.learn.features import QueryFeatures
 
 
 @dataclass(frozen=True)
@@ -325,10 +326,19 @@ def clean_indices(
     )
 
 
-def clean_data(data: Dataset, scale: np.ndarray | None = None, **kwargs
+def clean_data(data: Dataset, scale: np.ndarray | None = None,
+               features: QueryFeatures | None = None, **kwargs
                ) -> tuple[Dataset, CleaningResult]:
-    """Alg. 3 on a dataset's (x0, x1) inputs, the state coordinates weighted by ``scale``
-    (n,) as in the learners' distance; returns the kept rows and the cleaning record."""
-    inputs = data.inputs if scale is None else data.inputs * np.tile(scale, 2)
+    """Alg. 3 on a dataset's (x0, x1) inputs as the learners see them: mapped by
+    ``features`` (x1 - x0 along invariant coordinates, `learn.features`; none: the raw rows)
+    and the state coordinates weighted by ``scale`` (n,) as in the learners' distance; returns
+    the kept rows and the cleaning record. Without invariant coordinates the inputs are the
+    raw rows, bit for bit."""
+    if features is None:
+        inputs = data.inputs if scale is None else data.inputs * np.tile(scale, 2)
+    else:
+        inputs = features.transform(data.inputs)
+        if scale is not None:
+            inputs = inputs * features.scale(scale)
     result = clean_indices(inputs, data.cost, **kwargs)
     return data.take(result.keep), result

@@ -7,6 +7,7 @@ simulation stops when its cost exceeds ``max_cost`` or its state leaves the ball
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -72,10 +73,26 @@ def simulate_chunk(
 ) -> tuple[Dataset, GenerationStats]:
     """Generate the data points of ``n_simulations`` simulations from one seed."""
     cpu0 = time.process_time()
-    n = system.n_states
     x0, p, lam, valid = sample_starts(system, seed, first_index, n_simulations, time_weight)
     sim_index = first_index + np.flatnonzero(valid)
-    x0, p, lam = x0[valid], p[valid], lam[valid]
+    chunk, stats = simulate_from(
+        system, x0[valid], p[valid], lam[valid], sim_index, time_weight=time_weight, dt=dt,
+        max_cost=max_cost, max_state_distance=max_state_distance, u_max=u_max,
+        max_duration=max_duration)
+    return chunk, dataclasses.replace(
+        stats, simulations=n_simulations, invalid_costates=int(n_simulations - valid.sum()),
+        worker_cpu_s=time.process_time() - cpu0)
+
+
+def simulate_from(system: System, x0: np.ndarray, p: np.ndarray, lam: np.ndarray,
+                  sim_index: np.ndarray, *, time_weight: float, dt: float, max_cost: float,
+                  max_state_distance: float, u_max: float | None = None,
+                  max_duration: float = 20.0) -> tuple[CompactChunk, GenerationStats]:
+    """Alg. 2's simulations from given starts ``x0`` (S, n) with costates ``lam`` on H* = 0
+    (parameters ``p``), numbered ``sim_index``: every RK4 step is a data point. Uniform
+    generation and the co-learning loop's aimed simulations (`data.colearn`) share it."""
+    cpu0 = time.process_time()
+    n = system.n_states
     z0 = np.hstack([x0, lam, np.zeros((len(x0), 1))])
     # cost >= w*t bounds every simulation's duration; max_duration caps it regardless
     max_steps = int(min(np.ceil(max_cost / (time_weight * dt)) + 1, np.ceil(max_duration / dt)))
@@ -84,17 +101,14 @@ def simulate_chunk(
     )
     mask = np.arange(max_steps)[None, :] < lengths[:, None]
     rows, steps = np.nonzero(mask)
-    chunk = CompactChunk(x0=x0, params=p, costate=lam, simulation=sim_index.astype(np.int64),
+    chunk = CompactChunk(x0=x0, params=p, costate=lam,
+                         simulation=np.asarray(sim_index).astype(np.int64),
                          point_sim=rows.astype(np.int32), x1=states[rows, steps],
                          cost=costs[rows, steps], step=(steps + 1).astype(np.int32), dt=dt)
     stats = GenerationStats(
-        simulations=n_simulations,
-        invalid_costates=int(n_simulations - valid.sum()),
-        empty_simulations=int((lengths == 0).sum()),
-        points=len(rows),
-        nonfinite_simulations=int(nonfinite.sum()),
-        worker_cpu_s=time.process_time() - cpu0,
-    )
+        simulations=len(x0), invalid_costates=0,
+        empty_simulations=int((lengths == 0).sum()), points=len(rows),
+        nonfinite_simulations=int(nonfinite.sum()), worker_cpu_s=time.process_time() - cpu0)
     return chunk, stats
 
 
