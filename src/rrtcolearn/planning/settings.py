@@ -11,6 +11,9 @@ from rrtcolearn import derive
 from rrtcolearn.config import Config, GenerateConfig, PlanConfig, SystemConfig
 from rrtcolearn.systems.base import System
 
+# the derived refinement of learned edges (docs/landing.md measured it on and off)
+REFINE_ITERATIONS = 0
+
 
 def _default(section: type, name: str):
     """The configuration's default for ``name`` in ``section``: its one definition."""
@@ -64,6 +67,9 @@ class PlannerSettings:
     max_candidates: int | None = _default(PlanConfig, "max_candidates")
     extend_distance: float | None = _default(PlanConfig, "extend_distance")
     max_resample: int = 10
+    # Newton iterations on the steering parameters that make a learned edge land where it was
+    # aimed (`learned.LearnedSteering.refine`); 0 off, None derived (`resolved`)
+    refine_iterations: int | None = None
     # random controls (`controls`; when they switch on: `schedule`)
     control_edges: bool | None = _default(PlanConfig, "control_edges")
     # the goal connections (`connections`; when they switch on: `schedule`); connect_reach
@@ -96,6 +102,8 @@ class PlannerSettings:
                    for c in derive.plan_choices(self, system, self.data_reach)}
         if self.connect_reach is None:
             derived["connect_reach"] = self.data_reach
+        if self.refine_iterations is None:
+            derived["refine_iterations"] = REFINE_ITERATIONS
         if self.metric_scale is None:
             derived["metric_scale"] = system.metric_scale
         return replace(self, **derived)
