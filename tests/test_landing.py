@@ -95,13 +95,14 @@ def test_refine_lands_on_a_target_within_tolerance(models):
     rng = np.random.default_rng(5)
     steering = planner.learned
     landed = 0
-    for _ in range(40):
+    for _ in range(200):
         target = rng.uniform(model.system.state_low, model.system.state_high)
         parent, edge, aim = steering.propose(rng, run.tree, target, False)
         if edge is None:
             continue
         x0 = run.tree.states[parent]
         new = steering.refine(x0, edge, aim, False)
+        run.tree.add(parent, new)  # the tree grows, as in a plan
         if new is edge:
             continue
         landed += 1
@@ -112,7 +113,7 @@ def test_refine_lands_on_a_target_within_tolerance(models):
         gap[0] = np.mod(gap[0] + np.pi, 2 * np.pi) - np.pi
         assert np.linalg.norm(gap) <= steering.land_tolerance + 1e-9
         assert cost == pytest.approx(new.cost, rel=1e-9)
-    assert landed >= 3  # (4 of these 40 targets on this seed)
+    assert landed >= 10
 
 
 def test_refinement_is_deterministic_per_seed(models):

@@ -19,6 +19,11 @@ from rrtcolearn.planning.shooting import shoot
 # a refined edge must end within this fraction of the goal tolerance of its aim (the
 # shooting connection's tolerance, `connections.shoot_edge`)
 LAND_FRACTION = 0.25
+# refine only an edge that came at least this much nearer its aim than its start was:
+# Newton's method converges from a guess in its basin, and an edge U did not steer toward
+# the aim is not one (sparse_rrt's cart-pole: 523 refinements of such edges, none landed,
+# 65% more CPU; docs/landing.md)
+REFINE_PROGRESS = 0.5
 
 
 def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
@@ -116,13 +121,16 @@ class LearnedSteering:
                ) -> Edge:
         """``edge`` (from ``x0``) made to land on ``aim``: Newton's method on its steering
         parameters and duration (`shooting.shoot`, the goal connection's solver), at most
-        ``refine_iterations`` steps from the edge's own parameters. The refined edge is kept
+        ``refine_iterations`` steps from the edge's own parameters, for an edge that ended
+        within ``REFINE_PROGRESS`` of its start's distance to the aim. The refined edge is kept
         only if it ends within ``land_tolerance`` of the aim (or in the goal region) and
         passes every check of an edge, uncut; else ``edge`` as it was."""
         sys, s = self.problem.system, self.settings
         n = sys.n_states
         offset = self._offset(aim, to_goal)
-        if edge.hit or np.linalg.norm(offset(edge.traj[-1:, :n].copy())) <= self.land_tolerance:
+        miss = float(np.linalg.norm(offset(edge.traj[-1:, :n].copy())))
+        if edge.hit or miss <= self.land_tolerance or \
+                miss > REFINE_PROGRESS * float(np.linalg.norm(offset(x0[None].copy()))):
             return edge
         self.refined[0] += 1
         res = shoot(sys, x0, edge.params[:-1], edge.params[-1], offset,
