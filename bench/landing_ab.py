@@ -8,7 +8,9 @@ seeds: plans solved, median process CPU of a plan (to its first solution: the pl
 there), the median share of the solved paths' duration made by learned edges
 (``duration_by``), the median path cost, and the median over plans of the median landing
 error of learned edges (distance of an edge's end to its aim, state units; 0 for an edge in
-the goal region), with the refinements tried and kept.
+the goal region), the share of learned edges ending within the landing tolerance of their
+aim (``LAND_FRACTION`` of the goal tolerance; in the goal region counts), and the
+refinements tried and kept.
 
     python bench/landing_ab.py --models /tmp/landing_models [--seeds 10] [--refine 6]
                                [--problems pendulum,pendulum_u1,sparse_rrt_cartpole,acrobot]
@@ -82,6 +84,7 @@ def run(problem: str, models: Path, seeds: int, refine: int) -> list[dict]:
             "cost": float(np.median([p.path_cost for p in solved])) if solved else float("nan"),
             "landing_error": float(np.median(errors)) if errors else float("nan"),
             "refined": sum(x["refined"] for x in land), "landed": sum(x["landed"] for x in land),
+            "on_aim": sum(x["on_aim"] for x in land) / max(1, sum(x["edges"] for x in land)),
         })
         print(rows[-1], flush=True)
     return rows
@@ -98,12 +101,12 @@ def main() -> None:
     rows = [r for p in args.problems.split(",") for r in run(p, args.models, args.seeds,
                                                              args.refine)]
     print("\n| problem | refine | solved | CPU median (s) | learned share of duration "
-          "| path cost | landing error | refined / landed |")
-    print("|---|---|---|---|---|---|---|---|")
+          "| path cost | landing error | edges on aim | refined / landed |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['problem']} | {r['refine']} | {r['solved']} | {r['cpu_s']:.3f} | "
               f"{r['learned_share']:.2f} | {r['cost']:.3g} | {r['landing_error']:.3g} | "
-              f"{r['refined']} / {r['landed']} |")
+              f"{100 * r['on_aim']:.0f}% | {r['refined']} / {r['landed']} |")
 
 
 if __name__ == "__main__":

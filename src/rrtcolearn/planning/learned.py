@@ -24,6 +24,10 @@ LAND_FRACTION = 0.25
 # the aim is not one (sparse_rrt's cart-pole: 523 refinements of such edges, none landed,
 # 65% more CPU; docs/landing.md)
 REFINE_PROGRESS = 0.5
+# a solve stops refining after this many refinements in a row that did not land: where U's
+# edges are not within Newton's reach of their aims the tries only cost CPU (the shipped
+# acrobot's k-NN model: 2552 tries on 10 seeds, none landed, 25% more CPU; docs/landing.md)
+REFINE_GIVE_UP = 50
 
 
 def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
@@ -93,14 +97,16 @@ class LearnedSteering:
     def reset(self) -> None:
         """Forget the landing record (`landing`): at the start of every solve."""
         self.errors: list[float] = []  # per edge returned: its end's distance to its aim
-        self.refined = [0, 0]  # refinements tried, and landed and kept
+        self.refined = [0, 0, 0]  # refinements tried, landed and kept, failed in a row
 
     def landing(self) -> dict:
         """The plan's ``landing`` record: learned edges made, the median distance of their
-        ends to their aims (state units, angles the short way), the refinements tried and
+        ends to their aims (state units, angles the short way; 0 in the goal region), how
+        many ended within ``land_tolerance`` of their aims, the refinements tried and
         kept."""
         return {"edges": len(self.errors),
                 "median_error": float(np.median(self.errors)) if self.errors else None,
+                "on_aim": int(np.sum(np.asarray(self.errors) <= self.land_tolerance)),
                 "refined": self.refined[0], "landed": self.refined[1]}
 
     def _offset(self, aim: np.ndarray, to_goal: bool):
@@ -122,12 +128,15 @@ class LearnedSteering:
         """``edge`` (from ``x0``) made to land on ``aim``: Newton's method on its steering
         parameters and duration (`shooting.shoot`, the goal connection's solver), at most
         ``refine_iterations`` steps from the edge's own parameters, for an edge that ended
-        within ``REFINE_PROGRESS`` of its start's distance to the aim. The refined edge is kept
+        within ``REFINE_PROGRESS`` of its start's distance to the aim, until ``REFINE_GIVE_UP``
+        tries in a row failed in this solve. The refined edge is kept
         only if it ends within ``land_tolerance`` of the aim (or in the goal region) and
         passes every check of an edge, uncut; else ``edge`` as it was."""
         sys, s = self.problem.system, self.settings
         n = sys.n_states
         offset = self._offset(aim, to_goal)
+        if self.refined[2] >= REFINE_GIVE_UP:
+            return edge
         miss = float(np.linalg.norm(offset(edge.traj[-1:, :n].copy())))
         if edge.hit or miss <= self.land_tolerance or \
                 miss > REFINE_PROGRESS * float(np.linalg.norm(offset(x0[None].copy()))):
@@ -136,6 +145,7 @@ class LearnedSteering:
         res = shoot(sys, x0, edge.params[:-1], edge.params[-1], offset,
                     time_weight=s.time_weight, dt=s.dt, max_duration=s.max_duration,
                     tolerance=self.land_tolerance, max_iterations=s.refine_iterations)
+        self.refined[2] += 1
         if res is None:
             return edge
         params = np.append(res.params, res.steps * s.dt)
@@ -150,6 +160,7 @@ class LearnedSteering:
                     offset(new.traj[-1:, :n].copy())) <= self.land_tolerance)):
             return edge
         self.refined[1] += 1
+        self.refined[2] = 0
         return new
 
     @property
