@@ -12,7 +12,7 @@ from rrtcolearn.config import Config, GenerateConfig, PlanConfig, SystemConfig
 from rrtcolearn.systems.base import System
 
 # the derived refinement of learned edges (docs/landing.md measured it on and off)
-REFINE_ITERATIONS = 0
+REFINE_ITERATIONS = 6
 
 
 def _default(section: type, name: str):
