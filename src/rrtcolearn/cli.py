@@ -357,6 +357,9 @@ def _plan_summary(p) -> dict:
                if "outcomes" in p.extra else {}),
             **({"edges_by": ", ".join(f"{k} {v}" for k, v in p.extra["edges_by"].items())}
                if "edges_by" in p.extra else {}),
+            **({"path_duration_by": ", ".join(
+                f"{k} {100 * v:.0f}%" for k, v in p.extra["duration_by"].items())}
+               if p.extra.get("duration_by") else {}),
             **({"switched_on_at_iteration": ", ".join(
                 f"{k} {v}" for k, v in p.extra["connections_switched_on"].items())}
                if "connections_switched_on" in p.extra else {}),

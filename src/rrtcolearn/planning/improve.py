@@ -114,8 +114,11 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
         if costs and come[pos] + min(costs) < best - 1e-9:
             parent = node
             path = path[: pos + 1]
-            for edge in tails[int(np.argmin(costs))]:
+            tail = tails[int(np.argmin(costs))]
+            for edge in tail:
                 parent = add_edge(tree, parent, edge, s.dt)
+                # a shortcut is one extremal by shooting, or an LQR chain of held inputs
+                tree.made_by[parent] = "lqr" if edge.control is not None else "shooting"
                 path.append(parent)
                 added += 1
             best = float(come[pos] + min(costs))
@@ -124,6 +127,8 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
     if not added:
         plan.extra["shortcuts"] = record
         return plan
-    return replace(plan, path_nodes=path,
-                   end_goal_distance=prop.end_goal_distance(tree.states[path[-1]]),
-                   extra={**plan.extra, "shortcuts": record})
+    out = replace(plan, path_nodes=path,
+                  end_goal_distance=prop.end_goal_distance(tree.states[path[-1]]),
+                  extra={**plan.extra, "shortcuts": record})
+    out.extra["duration_by"] = out.duration_by
+    return out

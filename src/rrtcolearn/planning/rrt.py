@@ -180,6 +180,8 @@ class RRTCoLearn:
             index.add(prob.start)
         if self.controls is not None:
             self.controls.start(tree)
+        if self.learned is not None:
+            self.learned.reset()
         # shooting starts from U's guess: not without learned functions
         can_connect = sys.params_from_costate is not None and self.model is not None
         schedule = Schedule.start(s, controls=self.controls is not None
@@ -222,6 +224,7 @@ class RRTCoLearn:
                 parent, chain = found
                 for edge in chain:
                     parent = run.tree.add(parent, edge)
+                    run.tree.data.made_by[parent] = name
                 progress.goal_node, progress.connection = parent, name
                 return True
         return False
@@ -279,7 +282,7 @@ class RRTCoLearn:
             diagnosis += "".join(f"; {note}" for c in on if (note := c.note()))
         reports = {k: v for c in on for k, v in c.report().items()}
         switched = run.schedule.switched
-        return Plan(
+        plan = Plan(
             system=sys.name, start=prob.start, goal=prob.goal,
             goal_tolerance=prob.goal_tolerance, time_weight=s.time_weight, dt=s.dt,
             status=status, planning_time_s=wall, planning_cpu_s=cpu,
@@ -296,6 +299,10 @@ class RRTCoLearn:
                    **({"edges_by": progress.edges_by} if run.schedule.controls else {}),
                    **({} if diagnosis is None else {"diagnosis": diagnosis})},
         )
+        plan.extra["duration_by"] = plan.duration_by
+        if self.learned is not None:
+            plan.extra["landing"] = self.learned.landing()
+        return plan
 
 
 def load_kernels(system: System, explore: bool = False, lqr: bool = False) -> None:

@@ -64,6 +64,9 @@ class PlannerSettings:
     max_candidates: int | None = _default(PlanConfig, "max_candidates")
     extend_distance: float | None = _default(PlanConfig, "extend_distance")
     max_resample: int = 10
+    # Newton iterations on the steering parameters that make a learned edge land where it was
+    # aimed (`learned.LearnedSteering.refine`); 0 off
+    refine_iterations: int = _default(PlanConfig, "refine_iterations")
     # random controls (`controls`; when they switch on: `schedule`)
     control_edges: bool | None = _default(PlanConfig, "control_edges")
     # the goal connections (`connections`; when they switch on: `schedule`); connect_reach

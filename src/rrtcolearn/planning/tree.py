@@ -34,6 +34,9 @@ class PlannerData:
         self.costs = np.empty(capacity)
         self.max_abs_u = np.empty(capacity)
         self.trajectories: list[np.ndarray] = []
+        # the strategy that made a node's edge where it is not told by the edge itself (a
+        # goal connection's, a shortcut's): `kind`
+        self.made_by: dict[int, str] = {}
         self.add(root, -1, np.full(n, np.nan), np.full(n_params, np.nan), 0.0, 0.0, root[None],
                  0.0)
 
@@ -70,6 +73,13 @@ class PlannerData:
         self.trajectories.append(trajectory)
         self.n_nodes += 1
         return i
+
+    def kind(self, i: int) -> str:
+        """What made node ``i``'s edge: the connection or shortcut recorded in ``made_by``,
+        else "learned" (an extremal: it has a costate) or "control" (a held input)."""
+        if i in self.made_by:
+            return self.made_by[i]
+        return "control" if np.isnan(self.costates[i]).any() else "learned"
 
     def path_to(self, node: int) -> list[int]:
         """Node indices from the root to ``node``."""
@@ -150,6 +160,20 @@ class Plan:
     @property
     def path_duration(self) -> float:
         return float(sum(self.tree.durations[i] for i in self.path_nodes[1:]))
+
+    @property
+    def duration_by(self) -> dict[str, float]:
+        """The share of the path's duration made by each kind of edge (`PlannerData.kind`:
+        "learned", "control", or the connection's name: "shooting", "funnel", "lqr"),
+        largest first; empty for a path without duration."""
+        total = self.path_duration
+        if not total > 0:
+            return {}
+        out: dict[str, float] = {}
+        for i in self.path_nodes[1:]:
+            k = self.tree.kind(i)
+            out[k] = out.get(k, 0.0) + float(self.tree.durations[i])
+        return {k: v / total for k, v in sorted(out.items(), key=lambda kv: -kv[1])}
 
     @property
     def final_goal_distance(self) -> float | None:

@@ -1,0 +1,113 @@
+"""Learned edges that land: the planner with the Newton refinement of learned edges off and on
+(`planning.learned.LearnedSteering.refine`, ``PlannerSettings.refine_iterations``), same
+models, seeds and iteration budget, side by side in one process.
+
+Models are small k-NN fits (the hashed cases' data settings, tests/tree_cases.py), fitted
+once into ``--models`` and loaded from there afterwards. Per problem and setting, over the
+seeds: plans solved, median process CPU of a plan (to its first solution: the planner stops
+there), the median share of the solved paths' duration made by learned edges
+(``duration_by``), the median path cost, and the median over plans of the median landing
+error of learned edges (distance of an edge's end to its aim, state units; 0 for an edge in
+the goal region), the share of learned edges ending within the landing tolerance of their
+aim (``LAND_FRACTION`` of the goal tolerance; in the goal region counts), and the
+refinements tried and kept.
+
+    python bench/landing_ab.py --models /tmp/landing_models [--seeds 10] [--refine 6]
+                               [--problems pendulum,pendulum_u1,sparse_rrt_cartpole,acrobot]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).parents[1]
+sys.path.insert(0, str(ROOT))
+
+# problem: (tree case whose model settings it uses, plan overrides, iteration budget)
+PROBLEMS = {
+    "pendulum": ("pendulum_auto", {"goal_tolerance": 0.05}, 3000),
+    "pendulum_u1": ("pendulum_u1", {"goal_tolerance": 0.1}, 5000),
+    "sparse_rrt_cartpole": ("sparse_rrt_cartpole", {}, 5000),
+    "acrobot": ("acrobot", {}, 5000),
+}
+
+
+def model_for(case_name: str, models: Path):
+    from tests.tree_cases import CASES, fit_model, load_model
+
+    case = next(c for c in CASES if c.name == case_name)
+    target = models / case_name
+    if (target / "model.json").exists():
+        return case, load_model(case, target)
+    return case, fit_model(case, target)
+
+
+def run(problem: str, models: Path, seeds: int, refine: int) -> list[dict]:
+    """Rows for ``problem``: refinement off and on, each over ``seeds`` seeds."""
+    from rrtcolearn import pipeline
+    from rrtcolearn.planning.rrt import RRTCoLearn
+    from rrtcolearn.planning.termination import TerminationCondition
+
+    case_name, query, budget = PROBLEMS[problem]
+    case, model = model_for(case_name, models)
+    cfg = model.config
+    start, goal = pipeline.query_states(cfg, model.system)
+    if case.start is not None:
+        start, goal = list(case.start), list(case.goal)
+    tol = query.get("goal_tolerance", cfg.plan.goal_tolerance)
+    prob = pipeline.make_problem(model.system, cfg, start, goal, tol)
+    base = model.planner_settings(cfg)
+    rows = []
+    for k in (0, refine):
+        planner = RRTCoLearn(prob, model.functions, replace(base, refine_iterations=k))
+        planner.solve(TerminationCondition(None, 50), 10_000)  # warm the kernels
+        plans, cpu = [], []
+        for seed in range(seeds):
+            t = time.process_time()
+            plans.append(planner.solve(TerminationCondition(None, budget), seed))
+            cpu.append(time.process_time() - t)
+        solved = [p for p in plans if p.solved]
+        land = [p.extra["landing"] for p in plans]
+        errors = [x["median_error"] for x in land if x["median_error"] is not None]
+        rows.append({
+            "problem": problem, "refine": k, "iterations": budget,
+            "solved": f"{len(solved)}/{seeds}",
+            "cpu_s": float(np.median(cpu)),
+            "learned_share": float(np.median([p.extra["duration_by"].get("learned", 0.0)
+                                               for p in solved])) if solved else float("nan"),
+            "cost": float(np.median([p.path_cost for p in solved])) if solved else float("nan"),
+            "landing_error": float(np.median(errors)) if errors else float("nan"),
+            "refined": sum(x["refined"] for x in land), "landed": sum(x["landed"] for x in land),
+            "on_aim": sum(x["on_aim"] for x in land) / max(1, sum(x["edges"] for x in land)),
+        })
+        print(rows[-1], flush=True)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--models", type=Path, default=Path("/tmp/landing_models"))
+    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--refine", type=int, default=6, help="Newton iterations when on")
+    ap.add_argument("--problems", default=",".join(PROBLEMS))
+    args = ap.parse_args()
+    args.models.mkdir(parents=True, exist_ok=True)
+    rows = [r for p in args.problems.split(",") for r in run(p, args.models, args.seeds,
+                                                             args.refine)]
+    print("\n| problem | refine | solved | CPU median (s) | learned share of duration "
+          "| path cost | landing error | edges on aim | refined / landed |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['problem']} | {r['refine']} | {r['solved']} | {r['cpu_s']:.3f} | "
+              f"{r['learned_share']:.2f} | {r['cost']:.3g} | {r['landing_error']:.3g} | "
+              f"{100 * r['on_aim']:.0f}% | {r['refined']} / {r['landed']} |")
+
+
+if __name__ == "__main__":
+    main()
