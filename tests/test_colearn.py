@@ -14,6 +14,7 @@ from rrtcolearn.data.clean import clean_data
 from rrtcolearn.data.colearn import colearn
 from rrtcolearn.data.generate import generate_data
 from rrtcolearn.data.store import digest
+from rrtcolearn.learn.features import learning_geometry
 
 N = 600  # uniform simulations: small, the loop's logic is what is tested
 FIRST_ID = N
@@ -92,10 +93,11 @@ def test_pipeline_records_the_rounds(tmp_path):
     assert not (tmp_path / "shards").exists()
 
 
-def test_cleaning_sees_the_learners_features():
-    """The cart-pole's cart position p is invariant: rows shifted along p by a different
-    amount each are the same pairs to the learners, and to the cleaning; a system without
-    invariant coordinates (the pendulum) is cleaned on its raw rows, bit for bit."""
+def test_cleaning_on_features_is_blind_to_invariant_shifts():
+    """`clean_data(features=)`: the cart-pole's cart position p is invariant, so rows shifted
+    along p by a different amount each are the same pairs on the learners' features; the raw
+    rows are not blind to the shift. The pipeline cleans the raw rows (`clean_dataset`, for
+    the reason in its docstring), on the pendulum bit for bit as `clean_data` does."""
     cfg = Config.model_validate({"system": {"name": "cartpole"}, "seed": 4,
                                  "generate": {"n_simulations": 200, "max_cost": 2.0},
                                  "clean": {"k_max": 300, "d": 0.2}})
@@ -105,15 +107,15 @@ def test_cleaning_sees_the_learners_features():
     shift = np.zeros_like(data.x0)
     shift[:, 0] = np.random.default_rng(0).uniform(-3.0, 3.0, len(data))
     moved = dataclasses.replace(data, x0=data.x0 + shift, x1=data.x1 + shift)
-    kept, res = pipeline.clean_dataset(cfg, system, data)
-    _, res_moved = pipeline.clean_dataset(cfg, system, moved)
+    features, _ = learning_geometry(system, cfg.learn.periodic)
+    kw = {"d": 0.2, "k_max": 300, "seed": pipeline.seed_stream(4, "clean"),
+          "scale": system.metric_scale}
+    kept, res = clean_data(data, features=features, **kw)
+    _, res_moved = clean_data(moved, features=features, **kw)
     assert 0 < len(kept) < len(data)  # the cleaning removed something
     np.testing.assert_array_equal(res.keep, res_moved.keep)
-    # the raw rows (the cleaning before) are not blind to the shift
-    raw, _ = clean_data(data, d=0.2, k_max=300, seed=pipeline.seed_stream(4, "clean"),
-                        scale=system.metric_scale)
-    raw_moved, _ = clean_data(moved, d=0.2, k_max=300, seed=pipeline.seed_stream(4, "clean"),
-                              scale=system.metric_scale)
+    raw, _ = clean_data(data, **kw)
+    raw_moved, _ = clean_data(moved, **kw)
     assert len(raw) != len(raw_moved) or not np.array_equal(raw.simulation,
                                                             raw_moved.simulation)
 
