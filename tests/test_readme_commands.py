@@ -28,8 +28,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).parents[1]
 README = (ROOT / "README.md").read_text()
 BIN = Path(sys.executable).parent
@@ -154,7 +152,8 @@ def _synopsis() -> dict[str, set[str]]:
 def test_readme_synopsis_lists_every_option_of_every_command():
     """No option of the command line is missing from the README, and the README names
     none that does not exist."""
-    typer_main = pytest.importorskip("typer.main")
+    import typer.main as typer_main
+
     from rrtcolearn.cli import app
 
     group = typer_main.get_command(app)
@@ -173,7 +172,8 @@ def test_readme_synopsis_lists_every_option_of_every_command():
 def test_readme_inline_commands_use_existing_options():
     """Commands quoted in the README's prose (`rrtcolearn ...`) name a real command and
     real options of it."""
-    typer_main = pytest.importorskip("typer.main")
+    import typer.main as typer_main
+
     from rrtcolearn.cli import app
 
     group = typer_main.get_command(app)
