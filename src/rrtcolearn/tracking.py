@@ -41,7 +41,7 @@ import numpy as np
 
 from rrtcolearn.errors import ConfigError
 from rrtcolearn.evaluate import edge_trajectory, plan_problem
-from rrtcolearn.planning.lqr import build_goal_lqr, step_jacobians
+from rrtcolearn.planning.lqr import bryson_weights, build_goal_lqr, input_box, step_jacobians
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.systems.base import System
 
@@ -115,14 +115,6 @@ def nominal_trajectory(system: System, plan) -> Nominal:
     return Nominal(np.arange(len(state)) * dt, state, inp, np.concatenate(stages), dt)
 
 
-def input_box(problem: PlanningProblem) -> tuple[np.ndarray, np.ndarray]:
-    """(m,) the input box of a problem: the system's limits and ``u_max`` (+-inf where free)."""
-    low, high = problem.system.input_limits()
-    if problem.u_max is not None:
-        low, high = np.maximum(low, -problem.u_max), np.minimum(high, problem.u_max)
-    return low, high
-
-
 def _input_weight(system: System) -> np.ndarray:
     """(m,) the diagonal of the running cost's R, read off the Hamiltonian with a zero costate
     (H = w + u' R u / 2)."""
@@ -133,17 +125,9 @@ def _input_weight(system: System) -> np.ndarray:
 
 
 def tracking_weights(problem: PlanningProblem, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """(Q (n, n), R (m, m)) by Bryson's rule from the problem's boxes (module docstring)."""
-    sys = problem.system
-    half_x = 0.5 * (np.asarray(problem.state_high, float) - np.asarray(problem.state_low, float))
-    half_x[list(sys.angle_dims)] = np.pi
-    half_x = np.where(np.isfinite(half_x) & (half_x > 0), half_x, 1.0)
-    low, high = input_box(problem)
-    half_u = 0.5 * (high - low)
-    r_cost = _input_weight(sys)
-    r_diag = np.where(np.isfinite(half_u) & (half_u > 0), 1.0 / half_u**2,
-                      np.where(r_cost > 0, r_cost, 1.0))
-    return np.diag(dt / half_x**2), np.diag(dt * r_diag)
+    """(Q (n, n), R (m, m)) by Bryson's rule from the problem's boxes, as the goal LQR
+    weighs them (`planning.lqr.bryson_weights`), with the running cost's own R."""
+    return bryson_weights(problem, dt, _input_weight(problem.system))
 
 
 def riccati_gains(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray,

@@ -209,6 +209,29 @@ def _closed_loop(system, x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps,
     return states, inputs, 0
 
 
+def input_box(problem: PlanningProblem) -> tuple[np.ndarray, np.ndarray]:
+    """(m,) each the input box of ``problem``: the system's limits within ``u_max``
+    (+-inf where an input is free)."""
+    u_low, u_high = (np.array(b, dtype=np.float64) for b in problem.system.input_limits())
+    if problem.u_max is not None:
+        u_low, u_high = np.maximum(u_low, -problem.u_max), np.minimum(u_high, problem.u_max)
+    return u_low, u_high
+
+
+def bryson_weights(problem: PlanningProblem, dt: float, r_cost: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(Q (n, n), R (m, m)) by Bryson's rule from ``problem``'s boxes (module docstring) at
+    the step ``dt``; ``r_cost`` (m,) weighs the inputs without finite limits."""
+    half_x = 0.5 * (np.asarray(problem.state_high, float) - np.asarray(problem.state_low, float))
+    half_x[list(problem.system.angle_dims)] = np.pi  # an angle: half a turn
+    half_x = np.where(np.isfinite(half_x) & (half_x > 0), half_x, 1.0)
+    u_low, u_high = input_box(problem)
+    half_u = 0.5 * (u_high - u_low)
+    r_diag = np.where(np.isfinite(half_u) & (half_u > 0), 1.0 / half_u**2,
+                      np.where(r_cost > 0, r_cost, 1.0))
+    return np.diag(dt / half_x**2), np.diag(dt * r_diag)
+
+
 def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray | None = None
                    ) -> GoalLQR | str:
     """The LQR connection for ``problem`` at the planner's step ``dt``, or why there is none
@@ -216,9 +239,7 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
     inputs without finite limits (identity if not given)."""
     sys = problem.system
     m = sys.n_inputs
-    u_low, u_high = (np.array(b, dtype=np.float64) for b in sys.input_limits())
-    if problem.u_max is not None:
-        u_low, u_high = np.maximum(u_low, -problem.u_max), np.minimum(u_high, problem.u_max)
+    u_low, u_high = input_box(problem)
     with np.errstate(all="ignore"):
         x_e, u_e, res = equilibrium(sys, problem.goal, u_low, u_high)
     if not res <= _EQ_TOL:
@@ -232,14 +253,8 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
         A, B = step_jacobians(sys, x_e, u_e, dt)
     if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
         return "the linearisation at the equilibrium is not finite"
-    half_x = 0.5 * (problem.state_high - problem.state_low)
-    half_x[list(sys.angle_dims)] = np.pi  # an angle: half a turn
-    half_x = np.where(np.isfinite(half_x) & (half_x > 0), half_x, 1.0)
-    half_u = 0.5 * (u_high - u_low)
-    r_cost = np.diag(np.eye(m) if input_weight is None else input_weight)
-    r_diag = np.where(np.isfinite(half_u) & (half_u > 0), 1.0 / half_u**2,
-                      np.where(r_cost > 0, r_cost, 1.0))
-    Q, R = np.diag(dt / half_x**2), np.diag(dt * r_diag)
+    Q, R = bryson_weights(problem, dt, np.diag(np.eye(m) if input_weight is None
+                                               else input_weight))
     try:
         with np.errstate(all="ignore"):
             from scipy.linalg import solve_discrete_are  # (on first use)
