@@ -13,6 +13,7 @@ from rrtcolearn.data.dataset import Dataset
 from rrtcolearn.errors import ArtefactError
 from rrtcolearn.integrate import propagate, rollout
 from rrtcolearn.learn.models import LearnedFunctions
+from rrtcolearn.planning.lqr import input_box
 from rrtcolearn.systems.base import System
 
 if TYPE_CHECKING:
@@ -204,9 +205,7 @@ def replay(problem, plan) -> dict:
     limits and ``u_max``) and its states ``valid`` (finite, in the state constraints, free of
     obstacles at every step). ``reaches_goal`` needs all three: one check for every planner."""
     system = problem.system
-    low_u, high_u = system.input_limits()
-    if problem.u_max is not None:
-        low_u, high_u = np.maximum(low_u, -problem.u_max), np.minimum(high_u, problem.u_max)
+    low_u, high_u = input_box(problem)
     x = np.asarray(problem.start, dtype=np.float64)
     cost = duration = max_u = 0.0
     valid = inputs_ok = True

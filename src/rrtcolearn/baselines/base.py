@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from rrtcolearn.integrate import propagate
+from rrtcolearn.planning.lqr import input_box as problem_input_box
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.tree import Plan, PlannerData
 
@@ -20,9 +21,7 @@ def input_box(problem: PlanningProblem, u_max: float | None = None
     """(m,) low and high input bounds of a random-control peer: the system's input limits,
     within the problem's ``u_max`` if it has one; an input still unbounded gets +-``u_max``
     (the peer's own bound). ValueError if an input stays unbounded."""
-    low, high = problem.system.input_limits()
-    if problem.u_max is not None:
-        low, high = np.maximum(low, -problem.u_max), np.minimum(high, problem.u_max)
+    low, high = problem_input_box(problem)
     if u_max is not None:
         low = np.where(np.isfinite(low), low, -float(u_max))
         high = np.where(np.isfinite(high), high, float(u_max))
