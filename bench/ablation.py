@@ -356,11 +356,30 @@ def table(results: dict) -> str:
                 f"{f['learned_share']:.2f} | {f['extremal_share']:.2f} | "
                 f"{f['first_ratio']:.3g} | {f['anytime_ratio']:.3g} ({f['anytime_solved']}) | "
                 f"{tail}")
+    lines += ["", "Issue 31's targets (medians as above; success: every seed run):", "",
+              "| problem | mode | first cost <= 2x | anytime <= 1.2x | learned >= 60% | "
+              "all solved | CPU <= default's |", "|---|---|---|---|---|---|---|"]
+    for name, entry in results["problems"].items():
+        base = summarise(entry, "default", s["limit"])
+        for mode in MODES:
+            f = summarise(entry, mode, s["limit"])
+            if isinstance(f, str) or not isinstance(base, dict):
+                continue
+            solved, run = (int(v) for v in f["success"].split("/"))
+            checks = (_met(f["first_ratio"] <= 2), _met(f["anytime_ratio"] <= 1.2),
+                      _met(f["learned_share"] >= 0.6), _met(solved == run),
+                      "-" if mode == "default" else _met(f["cpu_s"] <= base["cpu_s"]))
+            label = f"{mode} (= default)" if f["same_as"] else mode
+            lines.append(f"| {name} | {label} | " + " | ".join(checks) + " |")
     lines.append("")
     for name, entry in results["problems"].items():
         lines.append(f"- {name}: optimum {entry['optimum']['value']:.6g}: "
                      f"{entry['optimum']['note']}")
     return "\n".join(lines)
+
+
+def _met(ok) -> str:
+    return "met" if ok else "not met"  # a NaN (nothing solved) is not met
 
 
 def main(argv: list[str] | None = None) -> dict:
