@@ -35,6 +35,7 @@ settings resumes from it), the table is printed last.
 
     PYTHONPATH=src python bench/ablation.py [--models DIR] [--out FILE] [--seeds 5]
         [--anytime-seeds 3] [--limit 60] [--anytime 10] [--problems a,b] [--modes a,b]
+    python bench/ablation.py --table docs/ablation.json
 """
 
 from __future__ import annotations
@@ -393,8 +394,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--anytime", type=float, default=10.0, help="process CPU s per query")
     ap.add_argument("--problems", default=",".join(PROBLEMS))
     ap.add_argument("--modes", default=",".join(MODES))
+    ap.add_argument("--table", type=Path, default=None, metavar="JSON",
+                    help="print the tables of a results file (docs/ablation.json); run nothing")
     args = ap.parse_args(argv)
-    results = run(args)
+    results = json.loads(args.table.read_text()) if args.table else run(args)
     print(table(results))
     return results
 
