@@ -292,6 +292,16 @@ def _first_valid(data, box, n_inner, lo_of, hi_of, x, order, k, threshold):
     return -1
 
 
+def check_permutation(rows: np.ndarray, n: int) -> np.ndarray:
+    """``rows`` as int64 (n,), ValueError unless it is a permutation of range(n) (a saved
+    leaf order read from a file)."""
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    if rows.shape != (n,) or (n and (rows.min() < 0 or rows.max() >= n or not
+                                     np.all(np.bincount(rows, minlength=n) == 1))):
+        raise ValueError("the saved neighbour index is not a permutation of the points")
+    return rows
+
+
 class NeighbourIndex:
     """Euclidean k-NN over fixed points (the paper's distance on (x0, x1))."""
 
@@ -302,13 +312,14 @@ class NeighbourIndex:
         if rows is None:
             self._tree = _build(self.points, _LEAF_SIZE)
         else:  # a saved leaf order (`rows`): checked to be a permutation of the points
-            rows = np.ascontiguousarray(rows, dtype=np.int64)
-            n = len(self.points)
-            if rows.shape != (n,) or (n and (rows.min() < 0 or rows.max() >= n or not
-                                             np.all(np.bincount(rows, minlength=n) == 1))):
-                raise ValueError("the saved neighbour index is not a permutation of the "
-                                 "points")
-            self._tree = _from_rows(self.points, rows, _LEAF_SIZE)
+            rows = check_permutation(rows, len(self.points))
+            if np.array_equal(rows, np.arange(len(rows))):
+                # points already in leaf order (`LearnedFunctions` stores them so): the tree
+                # is the points themselves, not a second copy of them
+                layout = _layout(len(rows), _LEAF_SIZE)
+                self._tree = (self.points, rows, _boxes(self.points, *layout), *layout)
+            else:
+                self._tree = _from_rows(self.points, rows, _LEAF_SIZE)
         # load the compiled queries now (numba's cache), not in the first plan
         self.query(self.points[:0], 1)
         self.first_valid(self.points[:0], np.empty(0, np.int64), 1, 0.0)
