@@ -194,8 +194,11 @@ class ValidityClassifier(_KNNBase):
         # such a neighbour lies in the query's cell or an adjacent one, so a one-cell dilation
         # of the occupied cells is a conservative, exact-to-the-result prefilter.
         cell = self.threshold / self.n_neighbors
-        lo = X.min(axis=0) - cell
-        dims = np.floor((X.max(axis=0) - lo) / cell).astype(np.int64) + 2
+        # X's least and greatest coordinates, from the index's root box (the same numbers
+        # without two passes over X: a plan's start-up)
+        low, high = self.index_.bounds
+        lo = low - cell
+        dims = np.floor((high - lo) / cell).astype(np.int64) + 2
         self.coverage_ = None
         if np.prod(dims.astype(np.float64)) > 5e7:  # too fine to store: skip the prefilter
             return
@@ -327,23 +330,50 @@ class LearnedFunctions:
                                                   self.features_, scale)).rows
         rows = check_permutation(rows, len(source))
         source = source[rows]
-        Xs = _indexed_points(X, source, turns[rows], periodic, self.features_, scale)
+        Xs = _indexed_points(X, source, np.take(turns, rows, axis=0), periodic,
+                             self.features_, scale)
         index = NeighbourIndex(Xs, np.arange(len(Xs)))
         self.leaf_order_ = rows
-        m = self.n_neighbors
-        circular = tuple(bool(c) for c in t["circular"])
-        low, high = tuple(t["param_low"].tolist()), tuple(t["param_high"].tolist())
-        self.cost_to_go_ = CostToGoRegressor(m, self.cost_bounds).fit(
-            Xs, t["cost"][source], index)
-        self.steering_ = SteeringRegressor(m, circular, low, high).fit(
-            Xs, t["targets"][source], index)
-        self.validity_ = ValidityClassifier(m, self.validity_threshold).fit(Xs, None, index)
+        self.validity_ = ValidityClassifier(self.n_neighbors, self.validity_threshold).fit(
+            Xs, None, index)
         self.input_scale_ = scale
         self.source_ = source  # data row of each indexed point (padding repeats rows)
         self.max_duration_ = float(t["targets"][:, -1].max()) if len(X) else 0.0
         # running share of the queries V accepted: where most are rejected, `query_valid`
         # first drops the rows whose nearest neighbour alone breaks the threshold (exact)
         self._accepted = 1.0
+        # J's and U's k-NN regressors, on the same index: made now for the k-NN learner,
+        # else when first asked for. The networks' plans never ask, and the regressors'
+        # per-point copies of the costs and parameters would be the largest arrays after
+        # the points themselves (98 MB of an acrobot's default model)
+        self._knn = None
+        if self.learner == "knn":
+            self._fit_knn()
+
+    def _fit_knn(self) -> None:
+        t, index, source, m = self.training_, self.validity_.index_, self.source_, \
+            self.n_neighbors
+        circular = tuple(bool(c) for c in t["circular"])
+        low, high = tuple(t["param_low"].tolist()), tuple(t["param_high"].tolist())
+        self._knn = (
+            CostToGoRegressor(m, self.cost_bounds).fit(index.points, t["cost"][source],
+                                                       index),
+            SteeringRegressor(m, circular, low, high).fit(
+                index.points, np.take(t["targets"], source, axis=0), index))
+
+    @property
+    def cost_to_go_(self) -> CostToGoRegressor:
+        """J's k-NN regressor (Section 5), on the shared index."""
+        if self._knn is None:
+            self._fit_knn()
+        return self._knn[0]
+
+    @property
+    def steering_(self) -> SteeringRegressor:
+        """U's k-NN regressor (Section 5), on the shared index."""
+        if self._knn is None:
+            self._fit_knn()
+        return self._knn[1]
 
     def _fit_networks(self) -> tuple[NeuralRegressor, NeuralRegressor]:
         """The J network (on log cost) and the U network (circular parameters as angles),
@@ -424,7 +454,7 @@ class LearnedFunctions:
     def query(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(J (Q,), U (Q, k+1), valid (Q,)) for queries X (Q, 2n)."""
         F = self.features_.transform(X)
-        dist, idx = self.cost_to_go_.kneighbors(F * self.input_scale_)
+        dist, idx = self.validity_.kneighbors(F * self.input_scale_)
         valid = self.validity_.predict_from_neighbours(dist, idx)
         return self._answers.cost(F, dist, idx), self._answers.steer(F, idx), valid
 
@@ -439,7 +469,7 @@ class LearnedFunctions:
         F = self.features_.transform(X)
         Xs = F * self.input_scale_
         rows = np.flatnonzero(self.validity_.may_be_valid(Xs))
-        threshold, m, index = self.validity_.threshold, self.n_neighbors, self.cost_to_go_.index_
+        threshold, m, index = self.validity_.threshold, self.n_neighbors, self.validity_.index_
         asked = len(X)
         if self._accepted < 0.5 and rows.size:
             # m distances summing to at most the threshold have the least of them within
@@ -482,8 +512,7 @@ def best_valid(functions: LearnedFunctions, X: np.ndarray) -> tuple[int, np.ndar
     cost = answers.cost_rows(F[rows])
     order = rows[np.argsort(cost, kind="stable")]
     v = functions.validity_
-    return functions.cost_to_go_.index_.first_valid(Xs, order, v.n_neighbors,
-                                                      v.threshold), None
+    return v.index_.first_valid(Xs, order, v.n_neighbors, v.threshold), None
 
 
 def _dilate(grid: np.ndarray) -> np.ndarray:
@@ -525,7 +554,7 @@ def _periodic_copies(X: np.ndarray, periodic, scale: np.ndarray, threshold: floa
 def _shifted_rows(X: np.ndarray, rows: np.ndarray, turns: np.ndarray, periodic
                   ) -> np.ndarray:
     """X[rows] (Q, 2n) with both ends of each angle moved by ``turns`` (Q, a) whole turns."""
-    out = X[rows]
+    out = np.take(X, rows, axis=0)  # the same copy as X[rows], in a fifth of its time
     n = X.shape[1] // 2
     for a, (j, lo, hi) in enumerate(periodic):
         for sign in (1, -1):

@@ -333,6 +333,13 @@ class NeighbourIndex:
         tree without its median searches."""
         return self._tree[1]
 
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The least and greatest coordinates (D,) each of the points: the tree's root box,
+        already computed (inf and -inf without points)."""
+        box = self._tree[2]
+        return box[0, 0], box[0, 1]
+
     def query(self, x: np.ndarray, k: int, max_distance: float = np.inf
               ) -> tuple[np.ndarray, np.ndarray]:
         """Distances and indices (Q, k) of the k nearest points to each row of ``x`` (Q, D).
