@@ -292,12 +292,27 @@ def _first_valid(data, box, n_inner, lo_of, hi_of, x, order, k, threshold):
     return -1
 
 
+@numba.njit(cache=True)
+def _permutation_kind(rows):
+    """2 if ``rows`` is range(len(rows)), 1 if another permutation of it, 0 if none (one
+    pass, a byte per row: no temporary the size of ``rows``)."""
+    n = rows.shape[0]
+    seen = np.zeros(n, np.uint8)
+    identity = True
+    for i in range(n):
+        r = rows[i]
+        if r < 0 or r >= n or seen[r]:
+            return 0
+        seen[r] = 1
+        identity = identity and r == i
+    return 2 if identity else 1
+
+
 def check_permutation(rows: np.ndarray, n: int) -> np.ndarray:
     """``rows`` as int64 (n,), ValueError unless it is a permutation of range(n) (a saved
     leaf order read from a file)."""
     rows = np.ascontiguousarray(rows, dtype=np.int64)
-    if rows.shape != (n,) or (n and (rows.min() < 0 or rows.max() >= n or not
-                                     np.all(np.bincount(rows, minlength=n) == 1))):
+    if rows.shape != (n,) or not _permutation_kind(rows):
         raise ValueError("the saved neighbour index is not a permutation of the points")
     return rows
 
@@ -312,8 +327,12 @@ class NeighbourIndex:
         if rows is None:
             self._tree = _build(self.points, _LEAF_SIZE)
         else:  # a saved leaf order (`rows`): checked to be a permutation of the points
-            rows = check_permutation(rows, len(self.points))
-            if np.array_equal(rows, np.arange(len(rows))):
+            rows = np.ascontiguousarray(rows, dtype=np.int64)
+            kind = _permutation_kind(rows) if rows.shape == (len(self.points),) else 0
+            if not kind:
+                raise ValueError("the saved neighbour index is not a permutation of the "
+                                 "points")
+            if kind == 2:
                 # points already in leaf order (`LearnedFunctions` stores them so): the tree
                 # is the points themselves, not a second copy of them
                 layout = _layout(len(rows), _LEAF_SIZE)
