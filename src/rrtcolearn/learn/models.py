@@ -328,11 +328,12 @@ class LearnedFunctions:
         if rows is None:  # a fit (or a file from before the saved order): build the tree
             rows = NeighbourIndex(_indexed_points(X, source, turns, periodic,
                                                   self.features_, scale)).rows
-        rows = check_permutation(rows, len(source))
+        # row numbers as int32 where they fit: half the memory of the three arrays of them
+        rows = check_permutation(rows, len(source)).astype(_row_dtype(len(source)), copy=False)
         source = source[rows]
         Xs = _indexed_points(X, source, np.take(turns, rows, axis=0), periodic,
                              self.features_, scale)
-        index = NeighbourIndex(Xs, np.arange(len(Xs)))
+        index = NeighbourIndex(Xs, np.arange(len(Xs), dtype=rows.dtype))
         self.leaf_order_ = rows
         self.validity_ = ValidityClassifier(self.n_neighbors, self.validity_threshold).fit(
             Xs, None, index)
@@ -529,6 +530,11 @@ def _dilate(grid: np.ndarray) -> np.ndarray:
     return out
 
 
+def _row_dtype(n: int) -> type:
+    """int32 for row numbers below 2**31, else int64."""
+    return np.int32 if n < 2**31 else np.int64
+
+
 def _periodic_copies(X: np.ndarray, periodic, scale: np.ndarray, threshold: float
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Which rows of X (N, 2n) are indexed once more one turn over each angle seam they lie
@@ -536,7 +542,7 @@ def _periodic_copies(X: np.ndarray, periodic, scale: np.ndarray, threshold: floa
     int8, the whole turns (+1, -1 or 0) it is shifted by along each of the ``a`` angles in
     ``periodic``), the rows of X first, in order, then each angle's copies of what came
     before (`_pad_periodic` makes the points)."""
-    source = np.arange(len(X))
+    source = np.arange(len(X), dtype=_row_dtype(len(X) * 3 ** len(periodic)))
     turns = np.zeros((len(X), len(periodic)), dtype=np.int8)
     for a, (j, lo, hi) in enumerate(periodic):
         pad = threshold / scale[j]  # a farther copy can never be a valid neighbour

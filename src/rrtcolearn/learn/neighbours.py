@@ -308,10 +308,17 @@ def _permutation_kind(rows):
     return 2 if identity else 1
 
 
+def _as_rows(rows) -> np.ndarray:
+    """Row numbers as a contiguous int32 or int64 array (other dtypes as int64)."""
+    rows = np.asarray(rows)
+    return np.ascontiguousarray(rows, dtype=rows.dtype if rows.dtype in (np.int32, np.int64)
+                                else np.int64)
+
+
 def check_permutation(rows: np.ndarray, n: int) -> np.ndarray:
-    """``rows`` as int64 (n,), ValueError unless it is a permutation of range(n) (a saved
-    leaf order read from a file)."""
-    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    """``rows`` (n,) as int32 or int64 (another dtype as int64), ValueError unless it is a
+    permutation of range(n) (a saved leaf order read from a file)."""
+    rows = _as_rows(rows)
     if rows.shape != (n,) or not _permutation_kind(rows):
         raise ValueError("the saved neighbour index is not a permutation of the points")
     return rows
@@ -327,7 +334,7 @@ class NeighbourIndex:
         if rows is None:
             self._tree = _build(self.points, _LEAF_SIZE)
         else:  # a saved leaf order (`rows`): checked to be a permutation of the points
-            rows = np.ascontiguousarray(rows, dtype=np.int64)
+            rows = _as_rows(rows)
             kind = _permutation_kind(rows) if rows.shape == (len(self.points),) else 0
             if not kind:
                 raise ValueError("the saved neighbour index is not a permutation of the "
