@@ -2,8 +2,9 @@
 
 Prints, as medians over fresh processes (``--repeats``, default 5):
 
-- wall and CPU time (user + system, of the child process) of ``rrtcolearn --help``;
-- wall and CPU time of ``rrtcolearn plan`` for the pendulum's swing-up query
+- wall and CPU time (user + system, of the child process) and peak resident memory of
+  ``rrtcolearn --help``;
+- the same of ``rrtcolearn plan`` for the pendulum's swing-up query
   (``--start=-3.14159,0 --goal 0,0 --goal-tolerance 0.1 --seed 1``);
 - the planning CPU of the first query of a fresh process after `pipeline.load_model`, of
   the same query planned again in that process (warm), and their ratio;

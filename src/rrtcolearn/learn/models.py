@@ -346,12 +346,14 @@ class LearnedFunctions:
         # J's and U's k-NN regressors, on the same index: made now for the k-NN learner,
         # else when first asked for. The networks' plans never ask, and the regressors'
         # per-point copies of the costs and parameters would be the largest arrays after
-        # the points themselves (98 MB of an acrobot's default model)
+        # the points themselves (98 MiB of an acrobot's default model)
         self._knn = None
         if self.learner == "knn":
             self._fit_knn()
 
     def _fit_knn(self) -> None:
+        """J's and U's k-NN regressors on V's index: the data rows' costs and steering
+        targets copied to the indexed points (``source_``)."""
         t, index, source, m = self.training_, self.validity_.index_, self.source_, \
             self.n_neighbors
         circular = tuple(bool(c) for c in t["circular"])
