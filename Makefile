@@ -59,8 +59,9 @@ bench-limits: $(STAMP)
 
 # one `rrtcolearn plan` and `--help` in fresh processes, first against warm planning CPU
 # (about a minute; makes runs/pendulum-swingup first if it holds no model)
+# STARTUP_SYSTEMS="runs/acrobot runs/cartpole": also one plan call of each of these runs
 bench-startup: $(STAMP)
-	$(BIN)/python bench/startup.py
+	$(BIN)/python bench/startup.py $(if $(STARTUP_SYSTEMS),--systems $(STARTUP_SYSTEMS))
 
 # plans tracked by time-varying LQR against open-loop on systems 10% heavier, with noise and a
 # start error, 100 runs each (makes the five plans into runs/tracking first if missing)

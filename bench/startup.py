@@ -2,8 +2,9 @@
 
 Prints, as medians over fresh processes (``--repeats``, default 5):
 
-- wall and CPU time (user + system, of the child process) of ``rrtcolearn --help``;
-- wall and CPU time of ``rrtcolearn plan`` for the pendulum's swing-up query
+- wall and CPU time (user + system, of the child process) and peak resident memory of
+  ``rrtcolearn --help``;
+- the same of ``rrtcolearn plan`` for the pendulum's swing-up query
   (``--start=-3.14159,0 --goal 0,0 --goal-tolerance 0.1 --seed 1``);
 - the planning CPU of the first query of a fresh process after `pipeline.load_model`, of
   the same query planned again in that process (warm), and their ratio;
@@ -12,7 +13,16 @@ then one JSON object with the same figures as its last line. The commands run as
 ``python -m rrtcolearn.cli`` with this interpreter and the current ``PYTHONPATH``, so
 ``PYTHONPATH=<checkout>/src python bench/startup.py`` measures another checkout. The model is
 ``--model RUN_DIR`` (default ``runs/pendulum-swingup``), made with ``rrtcolearn run --out
-RUN_DIR`` first if it holds none. Figures, not assertions: the machine may be shared.
+RUN_DIR`` first if it holds none.
+
+With ``--systems RUN_DIR ...`` (fitted runs of any system, e.g. ``rrtcolearn run --system
+acrobot --out RUN_DIR``) it also prints, per run, the medians of one ``rrtcolearn plan
+--model RUN_DIR --seed 1 --max-iterations N`` (``--iterations``, default 300: about a second
+of planning, so that the figure is the call's start-up plus a fixed amount of planning) of
+the run's own query: wall, CPU, peak resident memory (the child's ``ru_maxrss``), the
+planning CPU the plan file records and the rest (CPU minus planning: start-up and writing),
+the size of the run's ``functions.npz``, and whether the call met <= 2 s wall and <= 500 MB.
+Figures, not assertions: the machine may be shared.
 """
 
 from __future__ import annotations
@@ -20,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import statistics
 import subprocess
 import sys
@@ -41,25 +50,60 @@ print(json.dumps({"first": cpu[0], "warm": cpu[1:]}))
 """
 
 
-def timed_process(args: list[str]) -> tuple[float, float, str]:
-    """(wall s, CPU s of the child, its stdout) of one fresh process."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    proc = subprocess.run(args, capture_output=True, text=True, check=False)
-    wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    if proc.returncode != 0:
-        sys.exit(f"failed ({proc.returncode}): {' '.join(args)}\n{proc.stderr}")
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return wall, cpu, proc.stdout
+# the targets of issue 31 for one plan call of a 4-state model
+WALL_TARGET_S, RSS_TARGET_MB = 2.0, 500.0
+
+
+def timed_process(args: list[str]) -> tuple[float, float, str, float]:
+    """(wall s, CPU s of the child, its stdout, its peak resident memory in MB) of one fresh
+    process (`os.wait4`: that child's own resource usage, not all children's)."""
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(args, stdout=out, stderr=err)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        if proc.returncode != 0:
+            sys.exit(f"failed ({proc.returncode}): {' '.join(args)}\n"
+                     f"{err.read().decode(errors='replace')}")
+        stdout = out.read().decode(errors="replace")
+    return wall, usage.ru_utime + usage.ru_stime, stdout, usage.ru_maxrss / 1024
 
 
 def medians(args: list[str], repeats: int) -> dict:
-    runs = [timed_process(args)[:2] for _ in range(repeats)]
-    walls, cpus = zip(*runs, strict=True)
+    runs = [timed_process(args) for _ in range(repeats)]
+    walls, cpus, _, rss = zip(*runs, strict=True)
     return {"wall_s": round(statistics.median(walls), 3),
             "cpu_s": round(statistics.median(cpus), 3),
+            "peak_rss_mb": round(statistics.median(rss), 1),
             "wall_s_all": [round(w, 3) for w in walls]}
+
+
+def system_plan(cli: list[str], run: Path, iterations: int, repeats: int) -> dict:
+    """Medians of one `rrtcolearn plan` of the run's own query (seed 1, ``iterations``)
+    in fresh processes, after one untimed call; see the module docstring."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = os.path.join(tmp, "plan.json")
+        args = [*cli, "plan", "--model", str(run), "--seed", "1", "--max-iterations",
+                str(iterations), "--out", out]
+        timed_process(args)
+        runs, planning = [], []
+        for _ in range(repeats):
+            runs.append(timed_process(args))
+            with open(out, encoding="utf-8") as fh:
+                planning.append(json.load(fh)["planning_cpu_s"])
+    walls, cpus, _, rss = zip(*runs, strict=True)
+    f = {"run": str(run), "wall_s": statistics.median(walls), "cpu_s": statistics.median(cpus),
+         "peak_rss_mb": statistics.median(rss), "planning_cpu_s": statistics.median(planning),
+         "rest_cpu_s": statistics.median([c - p for c, p in zip(cpus, planning, strict=True)]),
+         "functions_mb": (run / "functions.npz").stat().st_size / 2**20,
+         "wall_s_all": walls}
+    f = {k: (round(v, 3) if isinstance(v, float) else
+             [round(w, 3) for w in v] if isinstance(v, tuple) else v) for k, v in f.items()}
+    f["meets_targets"] = f["wall_s"] <= WALL_TARGET_S and f["peak_rss_mb"] <= RSS_TARGET_MB
+    return f
 
 
 def main() -> None:
@@ -67,8 +111,17 @@ def main() -> None:
     ap.add_argument("--model", type=Path, default=Path("runs/pendulum-swingup"))
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--warm", type=int, default=5, help="warm plans per process")
+    ap.add_argument("--systems", type=Path, nargs="*", default=[],
+                    help="fitted runs whose own query one plan call plans (per run: wall, "
+                    "CPU, peak RSS)")
+    ap.add_argument("--iterations", type=int, default=300,
+                    help="--max-iterations of the --systems plan calls")
     a = ap.parse_args()
     cli = [sys.executable, "-m", "rrtcolearn.cli"]
+    for run in a.systems:
+        if not (run / "model.json").is_file():
+            sys.exit(f"no model in {run}: make one first, e.g. rrtcolearn run --system "
+                     f"acrobot --out {run}")
     if not (a.model / "model.json").is_file():
         print(f"no model in {a.model}: rrtcolearn run --out {a.model}", flush=True)
         timed_process([*cli, "run", "--out", str(a.model)])
@@ -94,9 +147,18 @@ def main() -> None:
     for name in ("help", "plan"):
         f = figures[name]
         print(f"  rrtcolearn {name:<5} wall {f['wall_s']:6.3f} s  CPU {f['cpu_s']:6.3f} s  "
-              f"(walls {f['wall_s_all']})")
+              f"peak RSS {f['peak_rss_mb']:5.0f} MB  (walls {f['wall_s_all']})")
     print(f"  planning CPU: first query {figures['first_plan_cpu_s']:.4f} s, warm "
           f"{figures['warm_plan_cpu_s']:.4f} s, ratio {figures['first_to_warm']:.2f}")
+    figures["systems"] = [system_plan(cli, run, a.iterations, a.repeats)
+                          for run in a.systems]
+    for f in figures["systems"]:
+        print(f"  plan {f['run']} ({a.iterations} iterations): wall {f['wall_s']:.3f} s, "
+              f"CPU {f['cpu_s']:.3f} s (planning {f['planning_cpu_s']:.3f} s, the rest "
+              f"{f['rest_cpu_s']:.3f} s), peak RSS {f['peak_rss_mb']:.0f} MB, functions.npz "
+              f"{f['functions_mb']:.1f} MB: <= {WALL_TARGET_S:g} s and <= "
+              f"{RSS_TARGET_MB:g} MB {'met' if f['meets_targets'] else 'NOT met'} "
+              f"(walls {f['wall_s_all']})")
     print(json.dumps(figures))
 
 

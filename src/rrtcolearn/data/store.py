@@ -111,7 +111,9 @@ def digest(arrays: dict[str, np.ndarray]) -> str:
         h.update(name.encode())
         h.update(a.dtype.str.encode())
         h.update(repr(a.shape).encode())
-        h.update(a.tobytes())
+        # the array's own buffer, not a `tobytes` copy: the same bytes without a transient
+        # copy of each array (a model's largest is ~100 MB)
+        h.update(memoryview(a.reshape(-1)).cast("B") if a.size else b"")
     return h.hexdigest()
 
 

@@ -17,7 +17,7 @@ import numpy as np
 from rrtcolearn.data.store import load_arrays, save_arrays
 from rrtcolearn.errors import ArtefactError
 from rrtcolearn.learn.features import QueryFeatures, learning_geometry
-from rrtcolearn.learn.neighbours import NeighbourIndex
+from rrtcolearn.learn.neighbours import NeighbourIndex, check_permutation
 
 if TYPE_CHECKING:
     from rrtcolearn.data.dataset import Dataset
@@ -194,8 +194,11 @@ class ValidityClassifier(_KNNBase):
         # such a neighbour lies in the query's cell or an adjacent one, so a one-cell dilation
         # of the occupied cells is a conservative, exact-to-the-result prefilter.
         cell = self.threshold / self.n_neighbors
-        lo = X.min(axis=0) - cell
-        dims = np.floor((X.max(axis=0) - lo) / cell).astype(np.int64) + 2
+        # X's least and greatest coordinates, from the index's root box (the same numbers
+        # without two passes over X: a plan's start-up)
+        low, high = self.index_.bounds
+        lo = low - cell
+        dims = np.floor((high - lo) / cell).astype(np.int64) + 2
         self.coverage_ = None
         if np.prod(dims.astype(np.float64)) > 5e7:  # too fine to store: skip the prefilter
             return
@@ -307,33 +310,73 @@ class LearnedFunctions:
 
     def _fit_neighbours(self, rows: np.ndarray | None = None) -> None:
         """The neighbour index and the k-NN functions on it; ``rows``: the index's saved
-        leaf order (`NeighbourIndex.rows`), which spares the tree's median searches."""
+        leaf order (`NeighbourIndex.rows`), which spares the tree's median searches.
+
+        The indexed points (the rows' scaled features, and their copies across angle seams)
+        are made once, directly in the tree's leaf order, so that the tree holds no second
+        copy of them: point i of the index is ``source_[i]``'s row, and every neighbour
+        index the queries return is a position in that order (J, U and V answer as with
+        the points in any other order: the same neighbours, the same sums)."""
         t = self.training_
         X = t["inputs"]
         n = X.shape[1] // 2
         self.features_ = QueryFeatures(n, tuple(int(i) for i in t.get("invariant", ())))
-        source = np.arange(len(X))
         periodic = tuple((int(j), lo, hi) for j, lo, hi in t["periodic"])
-        if periodic and len(X):
-            source, X = _pad_periodic(X, periodic, np.tile(t["input_scale"], 2),
-                                      self.validity_threshold)
+        source, turns = _periodic_copies(X, periodic, np.tile(t["input_scale"], 2),
+                                         self.validity_threshold)
         scale = self.features_.scale(t["input_scale"])
-        Xs = self.features_.transform(X) * scale
-        index = NeighbourIndex(Xs, rows)
-        m = self.n_neighbors
-        circular = tuple(bool(c) for c in t["circular"])
-        low, high = tuple(t["param_low"].tolist()), tuple(t["param_high"].tolist())
-        self.cost_to_go_ = CostToGoRegressor(m, self.cost_bounds).fit(
-            Xs, t["cost"][source], index)
-        self.steering_ = SteeringRegressor(m, circular, low, high).fit(
-            Xs, t["targets"][source], index)
-        self.validity_ = ValidityClassifier(m, self.validity_threshold).fit(Xs, None, index)
+        if rows is None:  # a fit (or a file from before the saved order): build the tree
+            rows = NeighbourIndex(_indexed_points(X, source, turns, periodic,
+                                                  self.features_, scale)).rows
+        # row numbers as int32 where they fit: half the memory of the three arrays of them
+        rows = check_permutation(rows, len(source)).astype(_row_dtype(len(source)), copy=False)
+        source = source[rows]
+        Xs = _indexed_points(X, source, np.take(turns, rows, axis=0), periodic,
+                             self.features_, scale)
+        index = NeighbourIndex(Xs, np.arange(len(Xs), dtype=rows.dtype))
+        self.leaf_order_ = rows
+        self.validity_ = ValidityClassifier(self.n_neighbors, self.validity_threshold).fit(
+            Xs, None, index)
         self.input_scale_ = scale
         self.source_ = source  # data row of each indexed point (padding repeats rows)
         self.max_duration_ = float(t["targets"][:, -1].max()) if len(X) else 0.0
         # running share of the queries V accepted: where most are rejected, `query_valid`
         # first drops the rows whose nearest neighbour alone breaks the threshold (exact)
         self._accepted = 1.0
+        # J's and U's k-NN regressors, on the same index: made now for the k-NN learner,
+        # else when first asked for. The networks' plans never ask, and the regressors'
+        # per-point copies of the costs and parameters would be the largest arrays after
+        # the points themselves (98 MiB of an acrobot's default model)
+        self._knn = None
+        if self.learner == "knn":
+            self._fit_knn()
+
+    def _fit_knn(self) -> None:
+        """J's and U's k-NN regressors on V's index: the data rows' costs and steering
+        targets copied to the indexed points (``source_``)."""
+        t, index, source, m = self.training_, self.validity_.index_, self.source_, \
+            self.n_neighbors
+        circular = tuple(bool(c) for c in t["circular"])
+        low, high = tuple(t["param_low"].tolist()), tuple(t["param_high"].tolist())
+        self._knn = (
+            CostToGoRegressor(m, self.cost_bounds).fit(index.points, t["cost"][source],
+                                                       index),
+            SteeringRegressor(m, circular, low, high).fit(
+                index.points, np.take(t["targets"], source, axis=0), index))
+
+    @property
+    def cost_to_go_(self) -> CostToGoRegressor:
+        """J's k-NN regressor (Section 5), on the shared index."""
+        if self._knn is None:
+            self._fit_knn()
+        return self._knn[0]
+
+    @property
+    def steering_(self) -> SteeringRegressor:
+        """U's k-NN regressor (Section 5), on the shared index."""
+        if self._knn is None:
+            self._fit_knn()
+        return self._knn[1]
 
     def _fit_networks(self) -> tuple[NeuralRegressor, NeuralRegressor]:
         """The J network (on log cost) and the U network (circular parameters as angles),
@@ -360,7 +403,7 @@ class LearnedFunctions:
         arrays = {f"data.{k}": v for k, v in self.training_.items()}
         # the neighbour index's leaf order: loading rebuilds the tree from it (0.04 s against
         # 0.2 s for the median searches on 500 000 points: a plan's start-up)
-        arrays["index.rows"] = self.cost_to_go_.index_.rows
+        arrays["index.rows"] = self.leaf_order_
         for p, net in zip("JU", self.networks_ or (), strict=False):
             arrays.update({f"{p}.{k}": v for k, v in net.to_arrays().items()})
         params = {"n_neighbors": self.n_neighbors, "cost_bounds": list(self.cost_bounds),
@@ -414,7 +457,7 @@ class LearnedFunctions:
     def query(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(J (Q,), U (Q, k+1), valid (Q,)) for queries X (Q, 2n)."""
         F = self.features_.transform(X)
-        dist, idx = self.cost_to_go_.kneighbors(F * self.input_scale_)
+        dist, idx = self.validity_.kneighbors(F * self.input_scale_)
         valid = self.validity_.predict_from_neighbours(dist, idx)
         return self._answers.cost(F, dist, idx), self._answers.steer(F, idx), valid
 
@@ -429,7 +472,7 @@ class LearnedFunctions:
         F = self.features_.transform(X)
         Xs = F * self.input_scale_
         rows = np.flatnonzero(self.validity_.may_be_valid(Xs))
-        threshold, m, index = self.validity_.threshold, self.n_neighbors, self.cost_to_go_.index_
+        threshold, m, index = self.validity_.threshold, self.n_neighbors, self.validity_.index_
         asked = len(X)
         if self._accepted < 0.5 and rows.size:
             # m distances summing to at most the threshold have the least of them within
@@ -472,8 +515,7 @@ def best_valid(functions: LearnedFunctions, X: np.ndarray) -> tuple[int, np.ndar
     cost = answers.cost_rows(F[rows])
     order = rows[np.argsort(cost, kind="stable")]
     v = functions.validity_
-    return functions.cost_to_go_.index_.first_valid(Xs, order, v.n_neighbors,
-                                                      v.threshold), None
+    return v.index_.first_valid(Xs, order, v.n_neighbors, v.threshold), None
 
 
 def _dilate(grid: np.ndarray) -> np.ndarray:
@@ -490,20 +532,62 @@ def _dilate(grid: np.ndarray) -> np.ndarray:
     return out
 
 
+def _row_dtype(n: int) -> type:
+    """int32 for row numbers below 2**31, else int64."""
+    return np.int32 if n < 2**31 else np.int64
+
+
+def _periodic_copies(X: np.ndarray, periodic, scale: np.ndarray, threshold: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Which rows of X (N, 2n) are indexed once more one turn over each angle seam they lie
+    within reach of: (source (P,), the row of X each indexed point repeats; turns (P, a)
+    int8, the whole turns (+1, -1 or 0) it is shifted by along each of the ``a`` angles in
+    ``periodic``), the rows of X first, in order, then each angle's copies of what came
+    before (`_pad_periodic` makes the points)."""
+    source = np.arange(len(X), dtype=_row_dtype(len(X) * 3 ** len(periodic)))
+    turns = np.zeros((len(X), len(periodic)), dtype=np.int8)
+    for a, (j, lo, hi) in enumerate(periodic):
+        pad = threshold / scale[j]  # a farther copy can never be a valid neighbour
+        column = X[source, j]  # (copies so far shift other angles, not this one)
+        parts_s, parts_t = [source], [turns]
+        for near, sign in ((column < lo + pad, 1), (column >= hi - pad, -1)):
+            shifted = turns[near]
+            shifted[:, a] = sign
+            parts_s.append(source[near])
+            parts_t.append(shifted)
+        source, turns = np.concatenate(parts_s), np.concatenate(parts_t)
+    return source, turns
+
+
+def _shifted_rows(X: np.ndarray, rows: np.ndarray, turns: np.ndarray, periodic
+                  ) -> np.ndarray:
+    """X[rows] (Q, 2n) with both ends of each angle moved by ``turns`` (Q, a) whole turns."""
+    out = np.take(X, rows, axis=0)  # the same copy as X[rows], in a fifth of its time
+    n = X.shape[1] // 2
+    for a, (j, lo, hi) in enumerate(periodic):
+        for sign in (1, -1):
+            moved = turns[:, a] == sign
+            out[moved, j] += sign * (hi - lo)
+            out[moved, n + j] += sign * (hi - lo)
+    return out
+
+
+def _indexed_points(X: np.ndarray, source: np.ndarray, turns: np.ndarray, periodic,
+                    features: QueryFeatures, scale: np.ndarray, chunk: int = 1 << 16
+                    ) -> np.ndarray:
+    """The index's points (P, 2n - k): the scaled features of rows ``source`` of X moved by
+    ``turns`` (`_periodic_copies`), made a chunk of rows at a time, so that a plan's
+    start-up holds one array of them and no padded or unscaled copy."""
+    out = np.empty((len(source), features.width))
+    for a in range(0, len(source), chunk):
+        part = slice(a, a + chunk)
+        out[part] = features.transform(_shifted_rows(X, source[part], turns[part],
+                                                     periodic)) * scale
+    return out
+
+
 def _pad_periodic(X: np.ndarray, periodic, scale: np.ndarray, threshold: float
                   ) -> tuple[np.ndarray, np.ndarray]:
     """(source rows, X with the rows within reach of a seam repeated one turn over)."""
-    n = X.shape[1] // 2
-    source = np.arange(len(X))
-    for j, lo, hi in periodic:
-        turn = hi - lo
-        pad = threshold / scale[j]  # a farther copy can never be a valid neighbour
-        parts_x, parts_s = [X], [source]
-        for near, shift in ((X[:, j] < lo + pad, turn), (X[:, j] >= hi - pad, -turn)):
-            copy = X[near].copy()
-            copy[:, j] += shift
-            copy[:, n + j] += shift
-            parts_x.append(copy)
-            parts_s.append(source[near])
-        X, source = np.concatenate(parts_x), np.concatenate(parts_s)
-    return source, X
+    source, turns = _periodic_copies(X, periodic, scale, threshold)
+    return source, _shifted_rows(X, source, turns, periodic)

@@ -292,6 +292,38 @@ def _first_valid(data, box, n_inner, lo_of, hi_of, x, order, k, threshold):
     return -1
 
 
+@numba.njit(cache=True)
+def _permutation_kind(rows):
+    """2 if ``rows`` is range(len(rows)), 1 if another permutation of it, 0 if none (one
+    pass, a byte per row: no temporary the size of ``rows``)."""
+    n = rows.shape[0]
+    seen = np.zeros(n, np.uint8)
+    identity = True
+    for i in range(n):
+        r = rows[i]
+        if r < 0 or r >= n or seen[r]:
+            return 0
+        seen[r] = 1
+        identity = identity and r == i
+    return 2 if identity else 1
+
+
+def _as_rows(rows) -> np.ndarray:
+    """Row numbers as a contiguous int32 or int64 array (other dtypes as int64)."""
+    rows = np.asarray(rows)
+    return np.ascontiguousarray(rows, dtype=rows.dtype if rows.dtype in (np.int32, np.int64)
+                                else np.int64)
+
+
+def check_permutation(rows: np.ndarray, n: int) -> np.ndarray:
+    """``rows`` (n,) as int32 or int64 (another dtype as int64), ValueError unless it is a
+    permutation of range(n) (a saved leaf order read from a file)."""
+    rows = _as_rows(rows)
+    if rows.shape != (n,) or not _permutation_kind(rows):
+        raise ValueError("the saved neighbour index is not a permutation of the points")
+    return rows
+
+
 class NeighbourIndex:
     """Euclidean k-NN over fixed points (the paper's distance on (x0, x1))."""
 
@@ -302,13 +334,18 @@ class NeighbourIndex:
         if rows is None:
             self._tree = _build(self.points, _LEAF_SIZE)
         else:  # a saved leaf order (`rows`): checked to be a permutation of the points
-            rows = np.ascontiguousarray(rows, dtype=np.int64)
-            n = len(self.points)
-            if rows.shape != (n,) or (n and (rows.min() < 0 or rows.max() >= n or not
-                                             np.all(np.bincount(rows, minlength=n) == 1))):
+            rows = _as_rows(rows)
+            kind = _permutation_kind(rows) if rows.shape == (len(self.points),) else 0
+            if not kind:
                 raise ValueError("the saved neighbour index is not a permutation of the "
                                  "points")
-            self._tree = _from_rows(self.points, rows, _LEAF_SIZE)
+            if kind == 2:
+                # points already in leaf order (`LearnedFunctions` stores them so): the tree
+                # is the points themselves, not a second copy of them
+                layout = _layout(len(rows), _LEAF_SIZE)
+                self._tree = (self.points, rows, _boxes(self.points, *layout), *layout)
+            else:
+                self._tree = _from_rows(self.points, rows, _LEAF_SIZE)
         # load the compiled queries now (numba's cache), not in the first plan
         self.query(self.points[:0], 1)
         self.first_valid(self.points[:0], np.empty(0, np.int64), 1, 0.0)
@@ -321,6 +358,13 @@ class NeighbourIndex:
         """The points' leaf order: all `NeighbourIndex(points, rows)` needs to rebuild the
         tree without its median searches."""
         return self._tree[1]
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The least and greatest coordinates (D,) each of the points: the tree's root box,
+        already computed (inf and -inf without points)."""
+        box = self._tree[2]
+        return box[0, 0], box[0, 1]
 
     def query(self, x: np.ndarray, k: int, max_distance: float = np.inf
               ) -> tuple[np.ndarray, np.ndarray]:
