@@ -33,21 +33,22 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.ablation import first_solution  # noqa: E402
-from rrtcolearn import dynobench as db  # noqa: E402
-from rrtcolearn.config import load_config  # noqa: E402
-from rrtcolearn.data.clean import clean_data  # noqa: E402
-from rrtcolearn.data.generate import generate_data  # noqa: E402
-from rrtcolearn.evaluate import held_out_errors  # noqa: E402
-from rrtcolearn.pipeline import (  # noqa: E402
+from bench.ablation import first_solution
+
+from rrtcolearn import dynobench as db
+from rrtcolearn.config import load_config
+from rrtcolearn.data.clean import clean_data
+from rrtcolearn.data.generate import generate_data
+from rrtcolearn.evaluate import held_out_errors
+from rrtcolearn.pipeline import (
     FittedModel,
     fit_functions,
     resolve,
     seed_stream,
     system_from_config,
 )
-from rrtcolearn.planning.rrt import RRTCoLearn  # noqa: E402
-from rrtcolearn.planning.termination import TerminationCondition  # noqa: E402
+from rrtcolearn.planning.rrt import RRTCoLearn
+from rrtcolearn.planning.termination import TerminationCondition
 
 PROBLEMS = {"parallelpark": "unicycle1_v0/parallelpark_0", "kink": "unicycle1_v0/kink_0"}
 
