@@ -259,3 +259,17 @@ def test_model_files_record_the_rotation(unicycle_data, tmp_path):
     save_arrays(tmp_path / "bad.npz", FUNCTIONS_FORMAT, arrays, {**meta, "version": 2})
     with pytest.raises(ArtefactError, match="version 2 with rotation"):
         LearnedFunctions.load(tmp_path / "bad.npz")
+
+
+def test_check_system_verifies_a_claimed_rotation():
+    from rrtcolearn.dynobench import unicycle1_v0
+    from rrtcolearn.systems.check import SystemCheckError, check_system
+
+    unicycle = unicycle1_v0()
+    check_system(unicycle, n_samples=50)
+    with pytest.raises(SystemCheckError, match="planar rotation"):  # the other sense
+        check_system(dataclasses.replace(unicycle, planar_rotation=(1, 0, 2)), n_samples=50)
+    quadrotor = make("quadrotor")  # x, z invariant, theta a heading, but gravity
+    assert quadrotor.state_names[:3] == ("x", "z", "theta")
+    with pytest.raises(SystemCheckError, match="planar rotation"):
+        check_system(dataclasses.replace(quadrotor, planar_rotation=(0, 1, 2)), n_samples=50)
