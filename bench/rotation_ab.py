@@ -3,7 +3,7 @@ side in one process on the same data and seeds (docs/invariance.md has the table
 
 The dynobench unicycle1_v0 problems parallelpark_0 and kink_0 (bench/ablation.py's rows: the
 exact body among the boxes, ball 0.1). One dataset (Alg. 2, ``--simulations`` simulations,
-data seed 1, every other setting derived or ``--set``), cleaned once, then two fits:
+data seed ``--data-seed``, 1 by default; every other setting derived or ``--set``), cleaned once, then two fits:
 
 - ``translation``: the system with ``planar_rotation=()`` (a local patch), J, U and V learned
   on x1 - x0 along x and y, as before;
@@ -53,19 +53,21 @@ from rrtcolearn.planning.termination import TerminationCondition
 PROBLEMS = {"parallelpark": "unicycle1_v0/parallelpark_0", "kink": "unicycle1_v0/kink_0"}
 
 
-def run(n_sims: int, seeds: int, limit: float, overrides: tuple[str, ...]) -> dict:
+def run(n_sims: int, seeds: int, limit: float, overrides: tuple[str, ...],
+        data_seed: int = 1) -> dict:
     cfg = load_config(overrides=['system.name="rrtcolearn.dynobench:unicycle1_v0"',
-                                 f"generate.n_simulations={n_sims}", "seed=1", *overrides])
+                                 f"generate.n_simulations={n_sims}", f"seed={data_seed}",
+                                 *overrides])
     system = system_from_config(cfg)
     cfg = resolve(cfg, system)
     g = cfg.generate
     options = dict(time_weight=cfg.system.time_weight, dt=g.dt, max_cost=cfg.max_cost,
                    max_state_distance=g.max_state_distance, chunk_size=g.chunk_size,
                    u_max=cfg.system.truncation_limit, max_duration=g.max_duration)
-    data, _ = generate_data(system, seed_stream(1, "generate"), n_sims, **options)
+    data, _ = generate_data(system, seed_stream(data_seed, "generate"), n_sims, **options)
     held, _ = generate_data(system, seed_stream(101, "generate"), 2000, **options)
     cleaned, _ = clean_data(data, d=cfg.clean.d, k_max=cfg.clean.k_max,
-                            method=cfg.clean.method, seed=seed_stream(1, "clean"),
+                            method=cfg.clean.method, seed=seed_stream(data_seed, "clean"),
                             scale=system.metric_scale)
     print(f"{system.name}: planar rotation {system.planar_rotation}, {len(data)} points, "
           f"{len(cleaned)} cleaned", flush=True)
@@ -122,9 +124,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--limit", type=float, default=20.0, help="process CPU s per plan")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a configuration override, e.g. clean.k_max=200")
+    ap.add_argument("--data-seed", type=int, default=1)
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
-    out = run(args.simulations, args.seeds, args.limit, tuple(args.set))
+    out = run(args.simulations, args.seeds, args.limit, tuple(args.set), args.data_seed)
     if args.out:
         args.out.write_text(json.dumps(out, indent=1))
     return out
