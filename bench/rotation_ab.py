@@ -3,7 +3,8 @@ side in one process on the same data and seeds (docs/invariance.md has the table
 
 The dynobench unicycle1_v0 problems parallelpark_0 and kink_0 (bench/ablation.py's rows: the
 exact body among the boxes, ball 0.1). One dataset (Alg. 2, ``--simulations`` simulations,
-data seed ``--data-seed``, 1 by default; every other setting derived or ``--set``), cleaned once, then two fits:
+data seed ``--data-seed``, 1 by default; every other setting derived or ``--set``),
+cleaned once, then two fits:
 
 - ``translation``: the system with ``planar_rotation=()`` (a local patch), J, U and V learned
   on x1 - x0 along x and y, as before;
