@@ -273,3 +273,22 @@ def test_check_system_verifies_a_claimed_rotation():
     assert quadrotor.state_names[:3] == ("x", "z", "theta")
     with pytest.raises(SystemCheckError, match="planar rotation"):
         check_system(dataclasses.replace(quadrotor, planar_rotation=(0, 1, 2)), n_samples=50)
+
+
+def test_a_fitted_run_records_its_rotation_and_reloads_it(tmp_path):
+    from rrtcolearn import pipeline
+    from rrtcolearn.config import load_config
+
+    cfg = load_config(None, ['system.name="rrtcolearn.dynobench:unicycle1_v0"',
+                             "generate.n_simulations=300", "clean.k_max=50",
+                             'learn.learner="knn"'])
+    pipeline.generate(cfg, tmp_path)
+    pipeline.clean(cfg, tmp_path)
+    model = pipeline.fit(cfg, tmp_path)
+    recorded = pipeline.read_run_config(tmp_path).derived["learn.planar_rotation"]
+    assert recorded.startswith("[0, 1, 2]: (x, y) turn with the heading theta")
+    loaded = pipeline.load_model(tmp_path)
+    assert loaded.functions.features_.rotation == (0, 1, 2)
+    X = np.array([[1.0, 2.0, 0.5, 1.5, 2.25, 1.0]])
+    for a, b in zip(model.functions.query(X), loaded.functions.query(X), strict=True):
+        np.testing.assert_array_equal(a, b)
