@@ -209,7 +209,7 @@ def test_save_load_round_trip_and_old_files(di_data, tmp_path):
     f = LearnedFunctions(validity_threshold=0.5).fit(data, system)
     f.save(tmp_path / "f.npz")
     g, meta = LearnedFunctions.load(tmp_path / "f.npz")
-    assert meta["version"] == 2 and g.features_ == f.features_
+    assert meta["version"] == 3 and g.features_ == f.features_
     X = _shifted(data.inputs[:200], 2, (0,), np.full(200, 5.0))
     for a, b in zip(f.query(X), g.query(X), strict=True):
         np.testing.assert_array_equal(a, b)
@@ -219,7 +219,7 @@ def test_save_load_round_trip_and_old_files(di_data, tmp_path):
     from rrtcolearn.learn.models import FUNCTIONS_FORMAT
 
     arrays, meta = load_arrays(tmp_path / "f.npz", FUNCTIONS_FORMAT)
-    old = {k: v for k, v in arrays.items() if k != "data.invariant"}
+    old = {k: v for k, v in arrays.items() if k not in ("data.invariant", "data.rotation")}
     header = {k: v for k, v in meta.items() if k in ("params",)}
     save_arrays(tmp_path / "old.npz", FUNCTIONS_FORMAT, old, header)
     h, _ = LearnedFunctions.load(tmp_path / "old.npz")
@@ -229,7 +229,7 @@ def test_save_load_round_trip_and_old_files(di_data, tmp_path):
     for a, b in zip(raw.query(X), h.query(X), strict=True):
         np.testing.assert_array_equal(a, b)
     # a newer version is refused with a message that says what to do
-    save_arrays(tmp_path / "new.npz", FUNCTIONS_FORMAT, arrays, {**header, "version": 3})
+    save_arrays(tmp_path / "new.npz", FUNCTIONS_FORMAT, arrays, {**header, "version": 4})
     with pytest.raises(ArtefactError, match="refit"):
         LearnedFunctions.load(tmp_path / "new.npz")
 

@@ -26,6 +26,9 @@ the measurements behind them are in docs/derived_settings.md.
 - ``learn.invariant_coordinates`` (recorded, not a setting): the state coordinates J and U
   are learned on the difference x1 - x0 of, found in the sympy model
   (`System.invariant_coordinates`, docs/invariance.md).
+- ``learn.planar_rotation`` (recorded, not a setting): the position pair and heading whose
+  rotation the dynamics are equivariant under, so the learners see the query in x0's body
+  frame (`System.planar_rotation`, docs/invariance.md).
 - ``plan.extend_distance``: off (the paper's planner) where a uniform target lies within
   the data's reach of a node often enough (>= 10% from the box centre); else a third of the
   reach (the 4-state systems' measured 0.5), so that random targets stay within the
@@ -92,6 +95,19 @@ def learner(system: System) -> Choice:
                       "'rrtcolearn[mlp]')")
     return Choice("learn.learner", "mlp", f"{system.n_states} states: neural J and U "
                   "(k-NN's error grows with the dimension)")
+
+
+def planar_rotation(system: System) -> Choice:
+    """The rotation the learners see the query through (`System.planar_rotation`), with
+    why; a record of what the system's model shows, not a setting to override."""
+    rot = tuple(getattr(system, "planar_rotation", ()))
+    if not rot:
+        return Choice("learn.planar_rotation", [], "none: no pair of invariant coordinates "
+                      "rotates with a heading under the dynamics (or the costates are the "
+                      "author's own parametrisation)")
+    x, y, th = (system.state_names[i] for i in rot)
+    return Choice("learn.planar_rotation", list(rot), f"({x}, {y}) turn with the heading "
+                  f"{th}: J and U are learned in x0's body frame")
 
 
 def invariant_coordinates(system: System) -> Choice:

@@ -480,6 +480,7 @@ def _learn_choices(system: System, data: Dataset, config: Config) -> list[derive
                             f"learn.n_neighbors = {learn.n_neighbors}")
     choices = [] if learn.learner is not None else [derive.learner(system)]
     choices.append(derive.invariant_coordinates(system))
+    choices.append(derive.planar_rotation(system))
     if learn.validity_threshold is None:
         try:
             features, periodic = learning_geometry(system, learn.periodic)

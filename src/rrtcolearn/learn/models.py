@@ -28,8 +28,10 @@ FUNCTIONS_FORMAT = "rrtcolearn.learned-functions"
 #: Version of a model file's contents (its header's "version"). 2: J, U and V learn on
 #: `QueryFeatures` (the invariant coordinates in ``data.invariant``). A file without it is
 #: version 1, from before the features: it was fitted on the raw queries, which is what its
-#: missing ``data.invariant`` (none) gives, so it loads and answers as it did.
-FUNCTIONS_VERSION = 2
+#: missing ``data.invariant`` (none) gives, so it loads and answers as it did. 3: a planar
+#: rotation (``data.rotation``: i, j, k and whether the heading wraps; none before 3) puts the
+#: queries in x0's body frame and U's targets with them (`QueryFeatures`).
+FUNCTIONS_VERSION = 3
 
 
 class _KNNBase:
@@ -299,7 +301,9 @@ class LearnedFunctions:
             "param_low": np.asarray(system.param_low, dtype=np.float64),
             "param_high": np.asarray(system.param_high, dtype=np.float64),
             "periodic": np.asarray(periodic, dtype=np.float64).reshape(-1, 3),
-            "invariant": np.asarray(features.invariant, dtype=np.int64)}
+            "invariant": np.asarray(features.invariant, dtype=np.int64),
+            "rotation": np.asarray(features.rotation + (int(features.heading_wraps),) * bool(
+                features.rotation), dtype=np.int64)}
         self._fit_neighbours()
         self.networks_ = None
         if self.learner == "mlp":
@@ -320,7 +324,9 @@ class LearnedFunctions:
         t = self.training_
         X = t["inputs"]
         n = X.shape[1] // 2
-        self.features_ = QueryFeatures(n, tuple(int(i) for i in t.get("invariant", ())))
+        rotation = tuple(int(i) for i in t.get("rotation", ()))
+        self.features_ = QueryFeatures(n, tuple(int(i) for i in t.get("invariant", ())),
+                                       rotation[:3], bool(rotation[3:] and rotation[3]))
         periodic = tuple((int(j), lo, hi) for j, lo, hi in t["periodic"])
         source, turns = _periodic_copies(X, periodic, np.tile(t["input_scale"], 2),
                                          self.validity_threshold)
@@ -362,7 +368,16 @@ class LearnedFunctions:
             CostToGoRegressor(m, self.cost_bounds).fit(index.points, t["cost"][source],
                                                        index),
             SteeringRegressor(m, circular, low, high).fit(
-                index.points, np.take(t["targets"], source, axis=0), index))
+                index.points, self._steering_targets(source), index))
+
+    def _steering_targets(self, source: np.ndarray) -> np.ndarray:
+        """U's targets of data rows ``source``, in x0's body frame with a planar rotation
+        (`QueryFeatures.steering_to_body`; the inputs are gathered only then)."""
+        t = self.training_
+        targets = np.take(t["targets"], source, axis=0)
+        if not self.features_.rotation:
+            return targets
+        return self.features_.steering_to_body(np.take(t["inputs"], source, axis=0), targets)
 
     @property
     def cost_to_go_(self) -> CostToGoRegressor:
@@ -394,7 +409,8 @@ class LearnedFunctions:
         j_net = NeuralRegressor(seed=self.seed, log_target=True, **common).fit(
             inputs, t["cost"])
         u_net = NeuralRegressor(seed=self.seed + 1, circular=circ, low=low, high=high,
-                                **common).fit(inputs, t["targets"])
+                                **common).fit(
+            inputs, self.features_.steering_to_body(t["inputs"], t["targets"]))
         return j_net, u_net
 
     def save(self, path: str | os.PathLike, meta: dict | None = None) -> str:
@@ -421,13 +437,15 @@ class LearnedFunctions:
         that does not check out."""
         arrays, meta = load_arrays(path, FUNCTIONS_FORMAT)
         version = meta.get("version", 1)
-        if version not in (1, FUNCTIONS_VERSION):
+        if version not in (1, 2, FUNCTIONS_VERSION):
             raise ArtefactError(f"{path} is a model file of version {version!r}; this "
-                                f"rrtcolearn reads versions 1 and {FUNCTIONS_VERSION}: refit "
+                                f"rrtcolearn reads versions 1 to {FUNCTIONS_VERSION}: refit "
                                 "it with `rrtcolearn fit`")
-        if version == 1 and "data.invariant" in arrays:
-            raise ArtefactError(f"{path} is not a readable model file (version 1 with "
-                                "invariant coordinates)")
+        for since, name in ((2, "invariant coordinates"), (3, "rotation")):
+            key = "data." + name.split()[0]
+            if version < since and key in arrays:
+                raise ArtefactError(f"{path} is not a readable model file (version "
+                                    f"{version} with {name})")
         try:
             params = dict(meta["params"])
             params["cost_bounds"] = tuple(params["cost_bounds"])
@@ -452,14 +470,16 @@ class LearnedFunctions:
     def steer(self, X: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
         """U (Q, k+1) for queries X (Q, 2n) whose neighbour indices (Q, m) `query_valid`
         returned."""
-        return self._answers.steer(self.features_.transform(X), neighbours)
+        return self.features_.steering_to_world(
+            X, self._answers.steer(self.features_.transform(X), neighbours))
 
     def query(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(J (Q,), U (Q, k+1), valid (Q,)) for queries X (Q, 2n)."""
         F = self.features_.transform(X)
         dist, idx = self.validity_.kneighbors(F * self.input_scale_)
         valid = self.validity_.predict_from_neighbours(dist, idx)
-        return self._answers.cost(F, dist, idx), self._answers.steer(F, idx), valid
+        steer = self.features_.steering_to_world(X, self._answers.steer(F, idx))
+        return self._answers.cost(F, dist, idx), steer, valid
 
     def query_valid(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rows of X (Q, 2n) that V accepts, with their J and their neighbour indices.

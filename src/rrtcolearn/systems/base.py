@@ -64,6 +64,13 @@ class System:
         (`rrtcolearn.learn.features`). Found from the sympy model by `build_system`
         (`rrtcolearn.systems.symbolic.invariant_coordinates`); () for a system given as
         numeric callables only, whose invariances cannot be proven.
+    planar_rotation : ``(i, j, k)`` when rotating the plane of the invariant coordinates
+        (x_i, x_j) by phi and adding phi to the heading x_k maps solutions to solutions, and
+        the steering parameters are the default costate direction (whose (i, j) components
+        then rotate too): J and the duration are invariant, and U equivariant, under that
+        rotation, so the learners see the query in x0's body frame
+        (`rrtcolearn.learn.features`). Found exactly from the sympy model by `build_system`
+        (`rrtcolearn.systems.symbolic.planar_rotation`); () otherwise.
     """
 
     name: str
@@ -97,6 +104,7 @@ class System:
     hold_jit: Callable | None = None
     explore_jit: Callable | None = None
     invariant_coordinates: tuple[int, ...] = ()
+    planar_rotation: tuple[int, ...] = ()
 
     @property
     def metric_scale(self) -> np.ndarray:

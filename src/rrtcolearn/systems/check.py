@@ -41,6 +41,21 @@ def _require(cond: bool, system: System, check: str, detail: str) -> None:
         _fail(system, check, detail)
 
 
+def _turned(z: np.ndarray, rotation: tuple[int, ...], phi: np.ndarray, n: int
+            ) -> np.ndarray:
+    """Rows z with columns (i, j) (and, with n, also (n + i, n + j)) turned by phi and
+    column k (``rotation``'s third entry, if any) advanced by phi."""
+    out = np.array(z, dtype=np.float64, copy=True)
+    i, j = rotation[:2]
+    c, s = np.cos(phi), np.sin(phi)
+    for o in ((0, n) if n else (0,)):
+        a, b = z[:, o + i], z[:, o + j]
+        out[:, o + i], out[:, o + j] = c * a - s * b, s * a + c * b
+    if len(rotation) > 2:
+        out[:, rotation[2]] += phi
+    return out
+
+
 def _worst(system: System, check: str, err: np.ndarray, tol: np.ndarray, what: str,
            context: dict[str, np.ndarray]) -> None:
     """Fail on the sample where ``err`` exceeds ``tol`` the most (NaN counts as failing)."""
@@ -152,6 +167,11 @@ class _Checker:
         inv = tuple(s.invariant_coordinates)
         _require(len(set(inv)) == len(inv) and all(0 <= j < n for j in inv), s, "metadata",
                  f"invariant_coordinates {inv} are not distinct state indices")
+        rot = tuple(s.planar_rotation)
+        _require(not rot or (len(rot) == 3 and len(set(rot)) == 3 and rot[0] in inv
+                             and rot[1] in inv and 0 <= rot[2] < n and k == n), s,
+                 "metadata", f"planar_rotation {rot} is not (i, j, k) with i, j invariant "
+                 "coordinates, k another state and the costate direction's n parameters")
         for what, arr in (("input_low", s.input_low), ("input_high", s.input_high)):
             if arr is not None:
                 _require(np.shape(arr) == (self.m,), s, "metadata",
@@ -406,9 +426,28 @@ class _Checker:
             out2 = self.rhs_batch(z2)
             _worst(s, "invariance", np.abs(out2 - out), 1e-9 * (1.0 + np.abs(out)),
                    f"rhs depends on invariant coordinate {j}", ctx)
+        # a claimed planar rotation: turning the state (and the costate with it) turns the
+        # state and costate derivatives, the running cost unchanged
+        if s.planar_rotation:
+            phi = self.rng.uniform(-np.pi, np.pi, len(z))
+            out2 = self.rhs_batch(_turned(z, s.planar_rotation, phi, n))
+            expected = _turned(out, s.planar_rotation[:2], phi, n)
+            _worst(s, "rotation", np.abs(out2 - expected), 1e-9 * (1.0 + np.abs(out)),
+                   f"rhs is not equivariant under the planar rotation {s.planar_rotation}",
+                   ctx)
 
     def periodic_costates(self, x, p, lam):
         s = self.s
+        if s.planar_rotation:
+            phi = self.rng.uniform(-np.pi, np.pi, len(x))
+            i, j, _ = s.planar_rotation
+            x2 = _turned(x, s.planar_rotation, phi, 0)[:, : self.n]
+            lam2, valid2 = s.costate_from_params(x2, _turned(p, (i, j), phi, 0), self.w)
+            expected = _turned(lam, (i, j), phi, 0)
+            _worst(s, "rotation", np.where(valid2, np.abs(lam2 - expected).max(axis=1),
+                                           np.inf), 1e-9 * (1.0 + np.abs(lam).max(axis=1)),
+                   "costate_from_params is not equivariant under the planar rotation "
+                   f"{s.planar_rotation}", {"x": x, "p": p})
         shifts = [(j, 2.0 * np.pi, "angle periodicity", "is not 2*pi-periodic in angle "
                    f"coordinate {j}") for j in s.angle_dims]
         shifts += [(j, 0.37 * (s.state_high[j] - s.state_low[j]), "invariance",

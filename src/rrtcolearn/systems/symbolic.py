@@ -76,6 +76,7 @@ __all__ = [
     "invariant_coordinates",
     "limit_derivation",
     "load_generated_module",
+    "planar_rotation",
     "with_input_limits",
 ]
 
@@ -184,6 +185,63 @@ def invariant_coordinates(der: Derivation, line: tuple | None = None) -> tuple[i
     return tuple(i for i, xi in enumerate(der.x) if xi not in used)
 
 
+def planar_rotation(der: Derivation, invariant: Sequence[int],
+                    line: tuple | None = None) -> tuple[int, ...]:
+    """``(i, j, k)`` when the system is equivariant under rotating the plane of the invariant
+    coordinates (x_i, x_j) by any angle phi while adding phi to x_k (the heading); () when no
+    such triple exists or the costates are parametrised by the author (``line``).
+
+    The test is exact: with the rotated state g x = (R(phi) (x_i, x_j), x_k + phi, rest),
+    sympy must simplify a(g x) - T a(x) and every column of B(g x) - T B(x) to zero for a
+    symbolic phi, T rotating the (i, j) components of a vector field and keeping the others
+    (the tangent map of g). R (the input weight) is constant and u is untouched, so g maps
+    solutions to solutions with the same inputs, cost and duration, and the costate to
+    T lambda (T is orthogonal). The default costate parametrisation (the direction d,
+    normalised onto H* = 0) then maps d to T d: p = d^T a and q = d^T M d are unchanged.
+    An author's parametrisation may transform any other way, so it is not used. Only
+    invariant coordinates are candidates for (i, j): the learners' body frame needs the
+    translations as well (`rrtcolearn.learn.features`). The first (i, j, k) found in index
+    order is returned (rotating (x_j, x_i) is the inverse rotation: one order fits).
+    """
+    if line is not None:
+        return ()
+    phi = sympy.Symbol("phi", real=True)
+    c, s = sympy.cos(phi), sympy.sin(phi)
+    fields = [list(der.drift)] + [list(der.input_matrix[:, col])
+                                  for col in range(der.input_matrix.shape[1])]
+    x = der.x
+    rng = np.random.default_rng(0)
+    probe = {xi: float(v) for xi, v in zip(x, rng.uniform(-2.0, 2.0, len(x)), strict=True)}
+    probe[phi] = 0.7317
+
+    def differences(i: int, j: int, k: int) -> list:
+        g = {x[i]: c * x[i] - s * x[j], x[j]: s * x[i] + c * x[j], x[k]: x[k] + phi}
+        out = []
+        for f in fields:
+            moved = [sympy.sympify(e).subs(g, simultaneous=True) for e in f]
+            turned = list(f)
+            turned[i], turned[j] = c * f[i] - s * f[j], s * f[i] + c * f[j]
+            out += [m - t for m, t in zip(moved, turned, strict=True)]
+        return out
+
+    for i in invariant:
+        for j in invariant:
+            if i == j:
+                continue
+            for k in range(der.n):
+                if k in (i, j):
+                    continue
+                diffs = differences(i, j, k)
+                # a numeric probe first (cheap, rejects almost every candidate), then
+                # the exact check that decides
+                if any(abs(complex(d.evalf(subs=probe))) > 1e-9 for d in diffs):
+                    continue
+                if all(sympy.simplify(sympy.expand(sympy.expand_trig(d))) == 0
+                       for d in diffs):
+                    return (int(i), int(j), int(k))
+    return ()
+
+
 def _generated_fields(der: Derivation, cp: CostateParametrisation | None,
                       cache_dir: str | os.PathLike | None) -> dict:
     """The `System` fields that come from the generated module of ``der`` (and ``cp``)."""
@@ -191,6 +249,7 @@ def _generated_fields(der: Derivation, cp: CostateParametrisation | None,
     line = None if cp is None else cp.expressions(der)
     source = generate_source(der, line)
     module = load_generated_module(source, cache_dir)
+    invariant = invariant_coordinates(der, line)
     if cp is None:
         params = dict(param_names=None, param_low=-np.ones(n), param_high=np.ones(n),
                       param_circular=(False,) * n, params_from_costate=direction_from_costate)
@@ -216,7 +275,8 @@ def _generated_fields(der: Derivation, cp: CostateParametrisation | None,
         explore_jit=module.explore_jit,
         input_low=np.array(der.input_low),
         input_high=np.array(der.input_high),
-        invariant_coordinates=invariant_coordinates(der, line),
+        invariant_coordinates=invariant,
+        planar_rotation=planar_rotation(der, invariant, line),
         source=source,
         derivation=der,
     )
