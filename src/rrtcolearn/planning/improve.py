@@ -1,13 +1,26 @@
-"""Improve a solved plan in its own tree: goal shortcuts by shooting (choose-parent for the goal).
+"""Improve a solved plan in its own tree: interior shortcuts (a stretch of the path replaced
+by one extremal, the rest re-attached) and goal shortcuts by shooting (choose-parent for the
+goal). `shortcut` runs both, interior first; it is the anytime scheme's ``improve``.
 
-A first solution is a chain of extremals (and, with an input box, constant-input edges) with
-a jump in the costate at every node: each edge is locally optimal, the chain is not. The
-optimum of a free-final-time problem is a single extremal from the start to the goal region
-(Pontryagin), so the path gets cheaper as its tail is replaced by one extremal from ever
-earlier nodes.
+Interior shortcuts (`interior_shortcuts`): between nodes a < b of the path, one extremal
+from x_a shot at x_b (`shooting.shoot`, a point target), from the stretch's first edge
+where that is an extremal and from U's guess for (x_a, x_b) where V accepts the query. The
+stretches J predicts to save most are tried first. The extremal lands within the rounding
+of its duration to the RK4 grid of x_b, and is then put on x_b by Newton's method on its
+costate with the duration fixed (`shooting.land`: H* = 0 is given up by about the rounding).
+The edges after b are simulated again from there (held inputs by their inputs, extremals by
+their steering parameters), or replaced by a goal tail from there; the chain is kept only
+if every edge passes the planner's checks, it ends in the goal region and the path is
+cheaper. docs/anytime.md has what it gains, system by system.
 
-`shortcut` walks the path backwards from the last edge's parent to the root. From node i it
-tries two kinds of tail into the goal region:
+Goal shortcuts (`goal_shortcuts`). A first solution is a chain of extremals (and, with an
+input box, constant-input edges) with a jump in the costate at every node: each edge is
+locally optimal, the chain is not. The optimum of a free-final-time problem is a single
+extremal from the start to the goal region (Pontryagin), so the path gets cheaper as its
+tail is replaced by one extremal from ever earlier nodes.
+
+`goal_shortcuts` walks the path backwards from the last edge's parent to the root. From
+node i it tries two kinds of tail into the goal region:
 - one extremal by shooting (`shooting.shoot`) from two guesses: the path's own edge out of i
   (its steering parameters, with the duration of the rest of the path: the chain after i is
   what the extremal has to straighten), and U's prediction for (x_i, goal) where the learned
@@ -38,7 +51,7 @@ from rrtcolearn.planning.connections import goal_lqr, lqr_chain, shoot_edge
 from rrtcolearn.planning.contracts import Edge, add_edge
 from rrtcolearn.planning.learned import goal_query
 from rrtcolearn.planning.propagator import Propagator
-from rrtcolearn.planning.shooting import shoot
+from rrtcolearn.planning.shooting import land, shoot
 from rrtcolearn.planning.tree import Plan, PlannerData
 
 if TYPE_CHECKING:
@@ -46,10 +59,11 @@ if TYPE_CHECKING:
 
 __all__ = ["goal_shortcuts", "interior_shortcuts", "shortcut"]
 
-# an interior shortcut is shot at its stretch's end node to this state residual (Newton's
-# method converges quadratically: a tight tolerance costs an iteration or two); its end is
-# then off by the rounding of its duration to the RK4 grid
-LAND_TOLERANCE = 1e-6
+# an interior shortcut is shot at its stretch's end node to this state residual (its end is
+# then off by the rounding of its duration to the RK4 grid), then put on it to LAND_TOLERANCE
+# with its duration on the grid (`shooting.land`; Newton's method converges quadratically)
+SHOOT_TOLERANCE = 1e-6
+LAND_TOLERANCE = 1e-8
 # the stretches tried in a row without a cheaper path before the interior search gives up
 INTERIOR_MISSES = 24
 # a re-attached path's last edge may run this many times its steps to reach the goal region
@@ -255,16 +269,19 @@ def interior_shortcuts(planner: RRTCoLearn, plan: Plan,
     cheaper; the same plan when none is.
 
     A stretch from node a to node b (`_pairs`: the greatest saving J predicts first) is
-    shot at x_b from U's guess for (x_a, x_b) and from the first edge's own steering
-    parameters (an extremal's) with the stretch's duration (`shooting.shoot`). The extremal
-    ends near x_b, not on it (its duration is a whole number of RK4 steps), so the edges
-    after b are simulated again from where it ends (`_reattached`), else replaced by a goal
-    tail from there (`_goal_tail`). The new chain is kept, as new leaves below node a, if
-    every edge passes the planner's checks, it ends in the goal region and the path gets
-    cheaper; the search then starts again on the new path. It stops after INTERIOR_MISSES
-    stretches in a row that gave nothing, or once ``stop()`` is true (asked before each
-    stretch). ``extra["interior"]`` records the stretches tried, the shots by guess (tried,
-    landed), the chains kept and those that needed a goal tail.
+    shot at x_b (`shooting.shoot`) from the first edge's own steering parameters (an
+    extremal's) with the stretch's duration, from U's costate for (x_a, x_b) with the
+    stretch's duration, and from U's whole guess. The extremal ends near x_b (its duration
+    is a whole number of RK4 steps), then on it by Newton's method on its costate alone
+    (`shooting.land`). The edges after b are simulated again from where it ends
+    (`_reattached`), else replaced by a goal tail from there (`_goal_tail`). The new chain
+    is kept, as new leaves below node a, if every edge passes the planner's checks, it ends
+    in the goal region and the path gets cheaper; the search then starts again on the new
+    path. It stops after INTERIOR_MISSES stretches in a row that gave nothing, or once
+    ``stop()`` is true (asked before each stretch). ``extra["interior"]`` records the
+    stretches tried, the shots by guess (tried, converged), the shots put on x_b
+    (``on_target``), the chains kept, those that needed a goal tail, and the shots whose
+    rest of the path could be neither re-attached nor replaced by a goal tail (``lost``).
     """
     if not plan.solved or len(plan.path_nodes) < 3 or planner.model is None:
         return plan
@@ -279,8 +296,8 @@ def interior_shortcuts(planner: RRTCoLearn, plan: Plan,
     path = list(plan.path_nodes)
     best = float(_costs_to_come(tree, path)[-1])
     tried: set[tuple[int, int]] = set()
-    record = {"stretches": 0, "shots": {"U": [0, 0], "edge": [0, 0]}, "kept": 0,
-              "goal_tails": 0, "lost": 0, "added": 0}
+    record = {"stretches": 0, "shots": {"edge": [0, 0], "U_stretch": [0, 0], "U": [0, 0]},
+              "on_target": 0, "kept": 0, "goal_tails": 0, "lost": 0, "added": 0}
     misses = 0
     while misses < INTERIOR_MISSES:
         come = _costs_to_come(tree, path)
@@ -340,24 +357,40 @@ def _shortcut_stretch(planner: RRTCoLearn, tree: PlannerData, path: list[int], a
     # an extremal cheaper than the stretch lasts at most its cost over w
     longest = min(stretch_cost / s.time_weight if s.time_weight > 0 else np.inf,
                   2.0 * stretch + s.max_duration)
-    guesses = [("U", u[:-1], float(np.clip(u[-1], s.dt, longest)))]
+    # the guesses in the order they converged most often on the shipped acrobot's k-NN model
+    # (docs/anytime.md): the stretch's first extremal and U's costate with the stretch's
+    # duration (about half of them each), U's own guess (one in ten)
+    guesses = []
     first = path[a + 1]
     if not np.isnan(tree.costates[first]).any():
         guesses.append(("edge", tree.params[first], min(stretch, longest)))
+    guesses.append(("U_stretch", u[:-1], float(np.clip(stretch, s.dt, longest))))
+    guesses.append(("U", u[:-1], float(np.clip(u[-1], s.dt, longest))))
     rest = path[b + 1 :]
     for name, params, duration in guesses:
         record["shots"][name][0] += 1
         res = shoot(sys, x0, params, duration, lambda x: x - target,
                     time_weight=s.time_weight, dt=s.dt, max_duration=longest,
-                    tolerance=LAND_TOLERANCE, max_iterations=20)
+                    tolerance=SHOOT_TOLERANCE, max_iterations=20)
         if res is None:
             continue
         record["shots"][name][1] += 1
-        p = np.append(res.params, res.steps * s.dt)
-        if not prop.start_extremal(x0, p, lam, z0):
+        # on x_b exactly, the duration kept on the RK4 grid (`shooting.land`): the rest of
+        # the path then starts where it did; else the extremal shot, within the rounding
+        start = sys.costate_from_params(x0[None], res.params[None], s.time_weight)[0][0]
+        exact = land(sys, x0, start, res.steps, target, time_weight=s.time_weight, dt=s.dt,
+                     tolerance=LAND_TOLERANCE)
+        record["on_target"] += exact is not None
+        costate = start if exact is None else exact
+        params = res.params if exact is None else \
+            sys.params_from_costate(x0[None], exact[None])[0]
+        p = np.append(params, res.steps * s.dt)
+        z0[:n], z0[n : 2 * n], z0[2 * n] = x0, costate, 0.0
+        if not prop.within_limit(z0):
             continue
-        edge = prop.extremal_edges(x0, p[None], lam[None])
-        if edge is None or not (edge.hit or edge.steps == res.steps):
+        edge = prop.extremal_edges(x0, p[None], costate[None])
+        if edge is None or not (edge.hit or edge.steps == res.steps) or \
+                come[a] + edge.cost >= best:
             continue
         chain: list[tuple[Edge, str | None]] = [(edge, "shooting")]
         tail = False
