@@ -5,15 +5,19 @@ seed.
 
     python bench/anytime_systems.py RUN_DIR [--budget 10] [--queries 10] [--optimum C]
                                     [--path-out FILE] [--schemes restarts,goal,shortcut]
+                                    [--dynobench PROBLEM]
 
 RUN_DIR is a `rrtcolearn run` directory (e.g. of examples.sparse_rrt_cartpole:make_cartpole;
 run from the repository root so that ``examples`` imports). The query is the system's
-default (start, goal, the config's tolerance). ``--optimum`` is the collocation optimum of
-that query (docs/collocation.md), for the ratios and the share of the gap closed.
-``--path-out`` writes the cheapest path found (re-simulated: ``t``, ``state``, ``input``;
-npz) for `bench/collocation.py --path-file`, the collocation started from the planner's path.
-Prints one line per query and scheme (first cost, final cost, solves, the final path's share
-of duration by edge kind), then one JSON line of medians (and mean shares by kind).
+default (start, goal, the config's tolerance), or with ``--dynobench`` that problem of
+dynobench's (`rrtcolearn.dynobench`, tolerance 0.1, the exact body; RUN_DIR that robot's
+run): its paths' durations are printed beside the reference solution's. ``--optimum`` is
+the collocation optimum of that query (docs/collocation.md), for the ratios and the share
+of the gap closed. ``--path-out`` writes the cheapest path found (re-simulated: ``t``,
+``state``, ``input``; npz) for `bench/collocation.py --path-file`, the collocation started
+from the planner's path. Prints one line per query and scheme (first cost, final cost,
+solves, final duration, the final path's share of duration by edge kind, the interior
+shortcuts' record), then one JSON line of medians (and mean shares by kind).
 """
 
 from __future__ import annotations
@@ -40,13 +44,22 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--queries", type=int, default=10)
     ap.add_argument("--optimum", type=float, default=None)
     ap.add_argument("--path-out", default=None, help="npz of the cheapest path found")
+    ap.add_argument("--dynobench", default=None, help="a dynobench problem, e.g. "
+                    "unicycle1_v0/parallelpark_0, instead of the system's default query")
     ap.add_argument("--schemes", default="restarts,goal,shortcut",
                     help="comma-separated: restarts, goal (goal shortcuts only), shortcut")
     args = ap.parse_args(argv)
     m = pipeline.load_model(args.run_dir)
     d = m.system.defaults
-    problem = pipeline.make_problem(m.system, m.config, d["start"], d["goal"],
-                                    m.config.plan.goal_tolerance)
+    if args.dynobench:
+        from rrtcolearn import dynobench as db
+
+        read = db.read_problem(args.dynobench)
+        problem = db.planning_problem(read, m.system, 0.1)
+        print("dynobench references (duration, s):", db.references(read), flush=True)
+    else:
+        problem = pipeline.make_problem(m.system, m.config, d["start"], d["goal"],
+                                        m.config.plan.goal_tolerance)
     planner = RRTCoLearn(problem, m.functions, m.planner_settings())
     every = {"restarts": None, "restarts+goal_shortcuts": partial(goal_shortcuts, planner),
              "restarts+shortcut": partial(shortcut, planner)}
@@ -63,7 +76,8 @@ def main(argv: list[str] | None = None) -> dict:
             a = p.extra["anytime"]
             by = {k: round(v, 3) for k, v in p.duration_by.items()} if p.solved else {}
             print(name, seed, a["first_solution_cost"], p.path_cost if p.solved else None,
-                  a["solves"], by, p.extra.get("interior"), flush=True)
+                  a["solves"], round(p.path_duration, 3), by, p.extra.get("interior"),
+                  flush=True)
             if a["first_solution_cost"] is not None:
                 rows[name].append((a["first_solution_cost"], p.path_cost, a["solves"]))
                 shares[name].append(by)

@@ -185,7 +185,7 @@ def test_interior_shortcuts_keep_the_tree(paper_model, u_max, seed):
 
 
 def test_shortcut_never_dearer_and_deterministic(paper_model):
-    """`shortcut` (interior, then goal shortcuts: the anytime hook) never returns a dearer
+    """`shortcut` (goal, then interior shortcuts: the anytime hook) never returns a dearer
     path than it was given, and the same plan gives the same path, bit for bit."""
     planner = _planner(paper_model, 2.0)
     for seed in range(4):
@@ -195,3 +195,16 @@ def test_shortcut_never_dearer_and_deterministic(paper_model):
         assert a.to_dict()["path"] == b.to_dict()["path"]
         assert a.extra["interior"] == b.extra["interior"]
         assert a.path_cost <= first
+
+
+@pytest.mark.parametrize(("u_max", "seed"), INTERIOR_CASES)
+def test_interior_shortcuts_are_deterministic(paper_model, u_max, seed):
+    """The same plan gives the same interior shortcuts, bit for bit."""
+    from rrtcolearn.planning.improve import interior_shortcuts
+
+    planner = _planner(paper_model, u_max)
+    a = interior_shortcuts(planner, _solve(planner, seed))
+    b = interior_shortcuts(planner, _solve(planner, seed))
+    assert a.extra["interior"]["kept"] >= 1
+    assert a.to_dict()["path"] == b.to_dict()["path"]
+    assert a.extra["interior"] == b.extra["interior"]

@@ -1,6 +1,6 @@
 """Improve a solved plan in its own tree: interior shortcuts (a stretch of the path replaced
 by one extremal, the rest re-attached) and goal shortcuts by shooting (choose-parent for the
-goal). `shortcut` runs both, interior first; it is the anytime scheme's ``improve``.
+goal). `shortcut` runs both, goal shortcuts first; it is the anytime scheme's ``improve``.
 
 Interior shortcuts (`interior_shortcuts`): between nodes a < b of the path, one extremal
 from x_a shot at x_b (`shooting.shoot`, a point target), from the stretch's first edge
@@ -283,10 +283,13 @@ def interior_shortcuts(planner: RRTCoLearn, plan: Plan,
     (``on_target``), the chains kept, those that needed a goal tail, and the shots whose
     rest of the path could be neither re-attached nor replaced by a goal tail (``lost``).
     """
-    if not plan.solved or len(plan.path_nodes) < 3 or planner.model is None:
+    if not plan.solved:
         return plan
     sys, s = planner.problem.system, planner.settings
-    if sys.params_from_costate is None:
+    record = {"stretches": 0, "shots": {"edge": [0, 0], "U_stretch": [0, 0], "U": [0, 0]},
+              "on_target": 0, "kept": 0, "goal_tails": 0, "lost": 0, "added": 0}
+    if len(plan.path_nodes) < 3 or planner.model is None or sys.params_from_costate is None:
+        plan.extra["interior"] = record
         return plan
     n = sys.n_states
     prop, tree = planner.propagator, plan.tree
@@ -296,8 +299,6 @@ def interior_shortcuts(planner: RRTCoLearn, plan: Plan,
     path = list(plan.path_nodes)
     best = float(_costs_to_come(tree, path)[-1])
     tried: set[tuple[int, int]] = set()
-    record = {"stretches": 0, "shots": {"edge": [0, 0], "U_stretch": [0, 0], "U": [0, 0]},
-              "on_target": 0, "kept": 0, "goal_tails": 0, "lost": 0, "added": 0}
     misses = 0
     while misses < INTERIOR_MISSES:
         come = _costs_to_come(tree, path)
@@ -418,8 +419,13 @@ def _shortcut_stretch(planner: RRTCoLearn, tree: PlannerData, path: list[int], a
 
 def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = None
              ) -> Plan:
-    """``plan`` improved in its own tree: stretches of the path replaced by single extremals
-    (`interior_shortcuts`), then its tail by an extremal or an LQR chain into the goal region
-    (`goal_shortcuts`); ``stop`` as both take it. The anytime scheme's ``improve``
-    (``plan.anytime``)."""
-    return goal_shortcuts(planner, interior_shortcuts(planner, plan, stop), stop)
+    """``plan`` improved in its own tree: its tail replaced by an extremal or an LQR chain
+    into the goal region (`goal_shortcuts`), then stretches of what is left by single
+    extremals (`interior_shortcuts`); ``stop`` as both take it. The anytime scheme's
+    ``improve`` (``plan.anytime``).
+
+    Goal shortcuts first: where one extremal reaches the goal from early on (the pendulum)
+    nothing is left for the interior to do, and under the anytime scheme's allowance the
+    interior search run first left the goal walk too little CPU (the pendulum at u_max = 1,
+    10 s: 5.785 against 5.668 on seed 0, 121 solves against 160)."""
+    return interior_shortcuts(planner, goal_shortcuts(planner, plan, stop), stop)
