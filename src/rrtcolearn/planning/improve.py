@@ -182,14 +182,18 @@ def _held_edge(propagator: Propagator, x0: np.ndarray, u: np.ndarray, steps: int
 def _replayed(propagator: Propagator, tree: PlannerData, node: int, x0: np.ndarray,
               steps: int, lam: np.ndarray, z0: np.ndarray) -> Edge | None:
     """Node ``node``'s edge simulated again from ``x0`` for ``steps`` steps: a held input by
-    its input, an extremal by its steering parameters (its costate at ``x0`` on H* = 0),
-    checked like every edge and cut at its first state in the goal region; None where it
-    fails a check before that."""
+    its input, an extremal by its costate (not by its steering parameters: an interior
+    shortcut's costate is off H* = 0, and its parameters do not give it back), checked like
+    every edge and cut at its first state in the goal region; None where it fails a check
+    before that."""
     if not np.isnan(tree.controls[node]).any():
         return _held_edge(propagator, x0, tree.controls[node], steps)
-    params = np.append(tree.params[node], steps * propagator.settings.dt)
-    if not propagator.start_extremal(x0, params, lam, z0):
+    n = tree.states.shape[1]
+    lam[:] = tree.costates[node]
+    z0[:n], z0[n : 2 * n], z0[2 * n] = x0, lam, 0.0
+    if not propagator.within_limit(z0):
         return None
+    params = np.append(tree.params[node], steps * propagator.settings.dt)
     edge = propagator.extremal_edges(x0, params[None], lam[None])
     return edge if edge is not None and (edge.hit or edge.steps == steps) else None
 

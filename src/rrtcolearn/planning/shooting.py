@@ -25,6 +25,7 @@ from rrtcolearn.systems.base import System
 
 _EPS = 1e-7  # relative finite-difference step of the costate coordinates
 _STEP_SIZES = (1.0, 0.5, 0.25, 0.1)  # backtracking line search, evaluated in one batch
+_LAND_STEP_SIZES = (1.0, 0.5, 0.25, 0.1, 0.03, 0.01)  # `land`'s
 
 
 @dataclass(frozen=True)
@@ -207,15 +208,18 @@ def land(system: System, x0: np.ndarray, lam0: np.ndarray, steps: int, target: n
         jac = ((rp[:n] - rp[n:]) / (2.0 * eps[:, None])).T
         if not np.isfinite(jac).all():
             return None
-        # the same backtracking line search as `newton`'s, in one batch
-        cand = lam[None] + np.asarray(_STEP_SIZES)[:, None] * \
+        # a backtracking line search in one batch, deeper than `newton`'s, taking the
+        # longest step that descends (not the one that descends most): into the shipped
+        # acrobot's costates of 1e3 the step that descended most was ever shorter and
+        # Newton crawled (on seed 0 of its k-NN model: 2 of 14 converged shots landed, and
+        # 10 were lost behind the miss; this way none were lost)
+        cand = lam[None] + np.asarray(_LAND_STEP_SIZES)[:, None] * \
             np.linalg.lstsq(jac, -r, rcond=None)[0][None]
         rc = ends(cand)
         with np.errstate(all="ignore"):
             norms = np.linalg.norm(rc, axis=1)
-        norms[~np.isfinite(norms)] = np.inf
-        best = int(np.argmin(norms))
-        if not norms[best] < norm:
+        descends = np.flatnonzero(norms < norm)  # NaN rows compare False
+        if not descends.size:
             return None
-        lam, r = cand[best], rc[best]
+        lam, r = cand[descends[0]], rc[descends[0]]
     return None
