@@ -17,7 +17,8 @@ of the gap closed. ``--path-out`` writes the cheapest path found (re-simulated: 
 ``state``, ``input``; npz) for `bench/collocation.py --path-file`, the collocation started
 from the planner's path. Prints one line per query and scheme (first cost, final cost,
 solves, final duration, the final path's share of duration by edge kind, the interior
-shortcuts' record), then one JSON line of medians (and mean shares by kind).
+shortcuts' record), then one JSON line of medians (and mean shares by kind). ``--once``:
+no restarts, each first solution improved once by each scheme's improvement.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import time
 from functools import partial
 
 import numpy as np
@@ -46,6 +48,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--path-out", default=None, help="npz of the cheapest path found")
     ap.add_argument("--dynobench", default=None, help="a dynobench problem, e.g. "
                     "unicycle1_v0/parallelpark_0, instead of the system's default query")
+    ap.add_argument("--once", action="store_true", help="no restarts: each query's first "
+                    "solution improved once by each scheme's improvement (process CPU)")
     ap.add_argument("--schemes", default="restarts,goal,shortcut",
                     help="comma-separated: restarts, goal (goal shortcuts only), shortcut")
     args = ap.parse_args(argv)
@@ -66,6 +70,8 @@ def main(argv: list[str] | None = None) -> dict:
     chosen = {"restarts": "restarts", "goal": "restarts+goal_shortcuts",
               "shortcut": "restarts+shortcut"}
     schemes = {chosen[k]: every[chosen[k]] for k in args.schemes.split(",")}
+    if args.once:
+        return improve_once(planner, schemes, args)
     rows: dict[str, list[tuple[float, float, int]]] = {k: [] for k in schemes}
     shares: dict[str, list[dict]] = {k: [] for k in schemes}
     cheapest = None
@@ -105,6 +111,42 @@ def main(argv: list[str] | None = None) -> dict:
         np.savez(args.path_out, t=sp["t"], state=sp["state"], input=sp["input"],
                  cost=cheapest.path_cost)
         print(f"cheapest path ({cheapest.path_cost:.6g}) -> {args.path_out}")
+    print(json.dumps(out))
+    return out
+
+
+def improve_once(planner: RRTCoLearn, schemes: dict, args: argparse.Namespace) -> dict:
+    """``--once``: per query the first solution (``--budget`` CPU seconds at most), then for
+    each scheme with an improvement a fresh solve of the same seed improved once, without
+    an allowance; the costs, the improvement's process CPU and the duration shares."""
+    rows: dict[str, list[tuple[float, float, float]]] = {k: [] for k in schemes if schemes[k]}
+    for seed in range(args.queries):
+        for name, improve in schemes.items():
+            if improve is None:
+                continue
+            p = planner.solve(TerminationCondition(None, None, args.budget), seed)
+            if not p.solved:
+                print(name, seed, "unsolved", flush=True)
+                continue
+            first, cpu = p.path_cost, time.process_time()
+            q = improve(p)
+            cpu = time.process_time() - cpu
+            by = {k: round(v, 3) for k, v in q.duration_by.items()}
+            print(name, seed, round(p.planning_cpu_s, 3), first, q.path_cost, round(cpu, 3),
+                  by, q.extra.get("interior"), flush=True)
+            rows[name].append((first, q.path_cost, cpu))
+    out = {}
+    for name, r in rows.items():
+        if not r:
+            continue
+        row = {"solved": f"{len(r)}/{args.queries}",
+               "first_cost_median": round(statistics.median(x[0] for x in r), 4),
+               "improved_cost_median": round(statistics.median(x[1] for x in r), 4),
+               "improve_cpu_median": round(statistics.median(x[2] for x in r), 4)}
+        if args.optimum:
+            row["improved_over_optimum"] = round(row["improved_cost_median"] / args.optimum, 4)
+        out[name] = row
+        print(f"{name}: " + " ".join(f"{k}={v}" for k, v in row.items()), flush=True)
     print(json.dumps(out))
     return out
 
