@@ -245,8 +245,8 @@ def _pairs(planner: RRTCoLearn, tree: PlannerData, path: list[int], come: np.nda
            tried: set[tuple[int, int]]) -> list[tuple[int, int, float, np.ndarray]]:
     """Stretches of ``path`` worth a shortcut, most promising first: positions (a, b),
     0 <= a < b < the path's last node, spanning two edges or more or one held input, not
-    tried yet, whose cost J predicts one extremal from x_a to x_b undercuts; with J's
-    prediction and U's (k + 1,)."""
+    tried yet, where V accepts the query (x_a, x_b) and J predicts one extremal undercuts
+    the stretch's cost; with J's prediction and U's (k + 1,)."""
     sys = planner.problem.system
     held = np.isnan(tree.costates[path]).any(axis=1)  # node's edge is a held input
     a, b = np.triu_indices(len(path) - 1, 1)
