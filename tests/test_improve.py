@@ -1,6 +1,8 @@
-"""Goal shortcuts (`planning.improve.shortcut`): a solved path's tail replaced by one extremal
-to the goal, added to the same tree as a new leaf; the tree stays a tree whose every edge
-re-simulates, the cost only falls, and the same plan gives the same result."""
+"""Shortcuts (`planning.improve.shortcut`): stretches of a solved path replaced by one
+extremal each, the rest of the path re-attached (`interior_shortcuts`), and its tail by one
+extremal to the goal (`goal_shortcuts`), added to the same tree as new leaves; the tree
+stays a tree whose every edge re-simulates, the cost only falls, and the same plan gives the
+same result."""
 
 from __future__ import annotations
 
@@ -48,7 +50,8 @@ def test_the_tree_stays_a_tree_of_exact_edges(paper_model, u_max):
     assert q.solved and q.extra["shortcuts"]["added"] >= 1
     assert q.path_cost < first_cost
     # only leaves were added, below earlier nodes: every node reaches the root
-    assert t.n_nodes == first_nodes + q.extra["shortcuts"]["added"]
+    assert t.n_nodes == first_nodes + q.extra["shortcuts"]["added"] + \
+        q.extra["interior"]["added"]
     assert t.parents[0] == -1 and all(t.parents[k] < k for k in range(1, t.n_nodes))
     assert q.path_nodes == t.path_to(q.path_nodes[-1])
     # every edge of the tree re-simulates from its parent to its node at its cost
@@ -106,3 +109,102 @@ def test_shortcuts_keep_clear_of_obstacles(paper_model):
         assert r["valid"] and r["reaches_goal"] and q.path_cost <= first
         cheaper += q.path_cost < first
     assert cheaper  # the shortcuts did act, around the obstacle
+
+
+# interior shortcuts (`planning.improve.interior_shortcuts`): seeds whose first paths the
+# paper model's shortcuts make cheaper, and where the rest of the path is re-attached
+INTERIOR_CASES = [(None, 4), (2.0, 3)]
+
+
+def _costs_to_come(tree) -> np.ndarray:
+    """Every node's cost to come, summed edge by edge from the root (parents come first)."""
+    come = np.zeros(tree.n_nodes)
+    for k in range(1, tree.n_nodes):
+        come[k] = come[tree.parents[k]] + tree.costs[k]
+    return come
+
+
+@pytest.mark.parametrize(("u_max", "seed"), INTERIOR_CASES)
+def test_interior_shortcut_resimulates_independently(paper_model, u_max, seed):
+    """The improved path, re-simulated edge by edge by a plain RK4 of the pendulum's own
+    equations (tests/conftest.py: no code shared with the planner) from the start, joins,
+    ends where each edge says at the cost it says, keeps the input limit and ends in the
+    goal ball; `check_plan` agrees."""
+    from tests.conftest import pendulum_edge
+
+    from rrtcolearn.evaluate import check_plan
+    from rrtcolearn.planning.improve import interior_shortcuts
+
+    planner = _planner(paper_model, u_max)
+    p = _solve(planner, seed)
+    first = p.path_cost
+    q = interior_shortcuts(planner, p)
+    rec = q.extra["interior"]
+    assert rec["kept"] >= 1 and q.path_cost < first
+    # the rest of the path was re-attached behind a shortcut: more new nodes than shortcuts
+    assert rec["added"] > rec["kept"]
+    x, cost = START, 0.0
+    for e in q.edges():
+        assert np.abs(np.asarray(e["from"]) - x).max() < 1e-12
+        states, inputs, c = pendulum_edge(e, q.time_weight, q.dt)
+        assert np.abs(states[-1] - e["to"]).max() < 1e-9
+        assert c == pytest.approx(e["cost"], rel=1e-9, abs=1e-12)
+        if u_max is not None:
+            assert np.abs(inputs).max() <= u_max + 1e-9
+        x, cost = states[-1], cost + c
+    assert cost == pytest.approx(q.path_cost, rel=1e-9)
+    assert np.linalg.norm(x - GOAL) <= 0.1
+    r = check_plan(paper_model.system, q, goal_fn=planner.problem.goal_distance)
+    assert r["path_cost"] == pytest.approx(q.path_cost, rel=1e-9)
+    assert "shooting" in q.duration_by
+
+
+@pytest.mark.parametrize(("u_max", "seed"), INTERIOR_CASES)
+def test_interior_shortcuts_keep_the_tree(paper_model, u_max, seed):
+    """Only leaves are added: the nodes the solve made keep their states, parents and costs,
+    and every node's cost to come is the sum of its path's edge costs (the path's end: the
+    plan's cost)."""
+    from rrtcolearn.planning.improve import interior_shortcuts
+
+    planner = _planner(paper_model, u_max)
+    p = _solve(planner, seed)
+    t = p.tree
+    m = t.n_nodes
+    before = (t.states[:m].copy(), t.parents[:m].copy(), t.costs[:m].copy())
+    q = interior_shortcuts(planner, p)
+    t = q.tree
+    assert t.n_nodes == m + q.extra["interior"]["added"]
+    assert np.array_equal(t.states[:m], before[0]) and np.array_equal(t.parents[:m], before[1])
+    assert np.array_equal(t.costs[:m], before[2])
+    assert t.parents[0] == -1 and all(0 <= t.parents[k] < k for k in range(1, t.n_nodes))
+    assert q.path_nodes == t.path_to(q.path_nodes[-1])
+    assert _costs_to_come(t)[q.path_nodes[-1]] == pytest.approx(q.path_cost, rel=1e-12)
+    for e in _tree_edges(q)[m - 1 :]:  # the new edges re-simulate from their parents
+        r = edge_trajectory(paper_model.system, e, q.time_weight, q.dt)
+        assert np.abs(r.states[-1] - e["to"]).max() < 1e-9
+
+
+def test_shortcut_never_dearer_and_deterministic(paper_model):
+    """`shortcut` (goal, then interior shortcuts: the anytime hook) never returns a dearer
+    path than it was given, and the same plan gives the same path, bit for bit."""
+    planner = _planner(paper_model, 2.0)
+    for seed in range(4):
+        first = _solve(planner, seed).path_cost
+        a = shortcut(planner, _solve(planner, seed))
+        b = shortcut(planner, _solve(planner, seed))
+        assert a.to_dict()["path"] == b.to_dict()["path"]
+        assert a.extra["interior"] == b.extra["interior"]
+        assert a.path_cost <= first
+
+
+@pytest.mark.parametrize(("u_max", "seed"), INTERIOR_CASES)
+def test_interior_shortcuts_are_deterministic(paper_model, u_max, seed):
+    """The same plan gives the same interior shortcuts, bit for bit."""
+    from rrtcolearn.planning.improve import interior_shortcuts
+
+    planner = _planner(paper_model, u_max)
+    a = interior_shortcuts(planner, _solve(planner, seed))
+    b = interior_shortcuts(planner, _solve(planner, seed))
+    assert a.extra["interior"]["kept"] >= 1
+    assert a.to_dict()["path"] == b.to_dict()["path"]
+    assert a.extra["interior"] == b.extra["interior"]

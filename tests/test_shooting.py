@@ -55,3 +55,34 @@ def test_no_solution_within_the_duration_bound_is_none():
     res = shoot(system, np.zeros(2), np.array([0.5, -0.5]), 0.2, offset_to([50.0, 0.0]),
                 time_weight=1.0, dt=DT, max_duration=0.5, tolerance=1e-3, max_iterations=5)
     assert res is None
+
+
+def test_land_puts_an_extremal_on_its_target_after_a_fixed_number_of_steps():
+    """`land` finds the costate whose extremal, integrated by a plain RK4 of the paper's
+    equations (tests/conftest.py), ends on the target after exactly the given steps, from a
+    costate 10% off; the H* = 0 it gives up stays small for a target on an H* = 0 extremal."""
+    from rrtcolearn.planning.shooting import land
+
+    sys = make("pendulum")
+    x0, lam, steps, dt = np.array([-2.5, 0.3]), np.array([0.8, -1.2]), 130, 0.01
+    target = rk4_numpy(np.r_[x0, lam, 0.0], 1.0, dt, steps)[-1, :2]
+    found = land(sys, x0, 1.1 * lam, steps, target, time_weight=1.0, dt=dt, tolerance=1e-10)
+    assert found is not None
+    end = rk4_numpy(np.r_[x0, found, 0.0], 1.0, dt, steps)[-1, :2]
+    assert np.abs(end - target).max() < 1e-9
+    np.testing.assert_allclose(found, lam, atol=1e-6)  # the extremal through the target
+
+
+def test_land_returns_none_short_of_its_tolerance():
+    """Without the iterations to get below the tolerance it gives None, not a costate that
+    misses; with them it lands (the 3 rad in 0.05 s an unbounded pendulum can cover)."""
+    from rrtcolearn.planning.shooting import land
+
+    sys = make("pendulum")
+    x0, lam0, target = np.array([0.0, 0.0]), np.array([0.1, 0.1]), np.array([0.3, 0.0])
+    kw = {"time_weight": 1.0, "dt": 0.01, "tolerance": 1e-10}
+    assert land(sys, x0, lam0, 5, target, max_iterations=0, **kw) is None
+    found = land(sys, x0, lam0, 5, target, **kw)
+    assert found is not None
+    end = rk4_numpy(np.r_[x0, found, 0.0], 1.0, 0.01, 5)[-1, :2]
+    assert np.abs(end - target).max() < 1e-9

@@ -5,12 +5,13 @@ takes one planner's solve of one problem, ``solve(termination, seed) -> Plan`` (
 own ``solve``, or ``lambda t, s: peer.solve(problem, t, s)`` for a `rrtcolearn.planners`
 peer), and spends the rest of the budget on further solves with child seeds of the query's
 seed. Each solved path may be passed through ``improve`` (``plan.anytime`` uses
-`planning.improve.shortcut`: the path's tail replaced by single extremals or LQR chains to the
-goal, in the same tree), within an allowance of the CPU its solve took, shrinking where
-improving does not pay. It returns the cheapest solved plan, with its best cost against
-planning CPU recorded in ``plan.extra["anytime"]`` (OMPL's progress properties, the data a
-best-cost-over-time figure is drawn from). Without ``improve`` it is the restart baseline an
-anytime scheme has to beat at equal CPU (docs/anytime.md).
+`planning.improve.shortcut`: stretches of the path replaced by single extremals, and its
+tail by single extremals or LQR chains to the goal, in the same tree), within an allowance
+of the CPU its solve took, shrinking where improving does not pay. It returns the cheapest
+solved plan, with its best cost against planning CPU recorded in ``plan.extra["anytime"]``
+(OMPL's progress properties, the data a best-cost-over-time figure is drawn from). Without
+``improve`` it is the restart baseline an anytime scheme has to beat at equal CPU
+(docs/anytime.md).
 
 The first solve uses the query's own seed, so the first solution, and the time to it, are a
 plain solve's. With an iteration budget (``TerminationCondition.max_iterations``: the

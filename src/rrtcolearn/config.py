@@ -298,8 +298,9 @@ class PlanConfig(_Section):
     max_iterations: int | None = Field(None, ge=1)
     anytime: bool = Field(
         False, description="spend the whole time (or iteration) limit: after the first "
-        "solution solve again with fresh child seeds, shortcut every path to the goal by "
-        "exact extremals or the LQR loop, and return the cheapest path, its best cost "
+        "solution solve again with fresh child seeds, shortcut every path (stretches by "
+        "single extremals, the tail to the goal by exact extremals or the LQR loop), and "
+        "return the cheapest path, its best cost "
         "against CPU in the plan's extra.anytime.progress (rrtcolearn.anytime, "
         "rrtcolearn.planning.improve)")
     obstacles: list[ObstacleConfig] = Field(

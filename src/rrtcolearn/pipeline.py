@@ -684,8 +684,8 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
          is_valid=None, goal_fn=None, goal_sampler=None) -> Plan:
     """Plan one query with a fitted model (Alg. 1): the query `make_problem` makes of the
     arguments (``config`` defaults to the model's), grown into a tree by `RRTCoLearn`; with
-    ``plan.anytime`` the whole limit is spent on restarts whose paths are shortcut to the goal
-    (`anytime.solve_with_restarts`, `planning.improve.shortcut`)."""
+    ``plan.anytime`` the whole limit is spent on restarts whose paths are shortcut, inside
+    and to the goal (`anytime.solve_with_restarts`, `planning.improve.shortcut`)."""
     cfg = config or model.config
     problem = make_problem(model.system, cfg, start, goal, goal_tolerance, u_max=u_max,
                            obstacles=obstacles, is_valid=is_valid, goal_fn=goal_fn,
