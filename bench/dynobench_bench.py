@@ -162,7 +162,12 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("runs/dynobench/bench.json"))
     ap.add_argument("--inflation", default="unicycle1_v0/parallelpark_0,unicycle1_v0/kink_0")
     ap.add_argument("--no-collision-cost", action="store_true")
+    ap.add_argument("--tables", default="", help="A.json,B.json,...: print the tables of "
+                    "these results (merged) and stop")
     args = ap.parse_args()
+    if args.tables:
+        print_tables(merge([json.loads(Path(f).read_text()) for f in args.tables.split(",")]))
+        return
     problems = [p for p in args.problems.split(",") if p] or db.shipped_problems(
         tuple(m for m in args.models.split(",") if m))
     report = {"tolerance": TOLERANCE, "seeds": args.seeds, "time_limit_cpu_s": args.time_limit,
@@ -205,20 +210,37 @@ def main() -> None:
     print_tables(report)
 
 
+def merge(reports: list[dict]) -> dict:
+    """Several runs' results as one (each problem from the last report holding it)."""
+    out = {"tolerance": TOLERANCE, "w": {}, "offline_cpu_s": {}, "problems": {},
+           "collision_cost": {}, "runs": [(r["seeds"], r["time_limit_cpu_s"]) for r in reports]}
+    for r in reports:
+        for key in ("w", "offline_cpu_s", "problems", "collision_cost"):
+            out[key].update(r.get(key) or {})
+    return out
+
+
+def _unsolved(entry: dict, body: str) -> str:
+    cpu = [r["cpu_s"] for r in entry.get("rows", []) if not r["solved"]]
+    return f"{min(cpu):.0f}-{max(cpu):.0f}" if body == "exact" and cpu else "-"
+
+
 def _ratio(a, b) -> str:
     return f"{a / b:.2f}" if a == a and b and b == b else "-"
 
 
 def print_tables(report: dict) -> None:
     w = ", ".join(f"{r} {v:g}" for r, v in report["w"].items())
+    runs = report.get("runs", [(report.get("seeds"), report.get("time_limit_cpu_s"))])
     print(f"\nw: {w}; goal tolerance {report['tolerance']} (weighted, angles wrapped); "
-          f"{report['seeds']} seeds, {report['time_limit_cpu_s']:g} s CPU each; references "
-          "timed by dynobench's authors on another machine")
+          f"(seeds, CPU limit s): {runs}; references timed by dynobench's authors on another "
+          "machine; 'unsolved CPU' is the CPU the unsolved seeds got before the limit or "
+          "the wall cap (3 x the limit) stopped them")
     print("| problem | body | solved | CPU median s | duration median s | iDb-A* duration s "
           "/ time s | RRT+TO duration s | duration / iDb-A*'s | CPU / iDb-A*'s time | "
           "duration / RRT+TO's | dynobench: in collision (exported; RK4 steps) | replays "
-          "| offline CPU s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| unsolved CPU s (min-max) | offline CPU s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, e in report["problems"].items():
         ref = e["references"].get("idbastar_v0_solution_v0", {})
         rrt = e["references"].get("rrt_to_v0_solution_v0", {})
@@ -236,7 +258,8 @@ def print_tables(report: dict) -> None:
                   f"{_ratio(cpu, stamp)} | {_ratio(dur, rrt.get('cost', nan))} | "
                   f"{s['dynobench_in_collision']}/{s['exported_states']}; "
                   f"{s['dynobench_steps_in_collision']}/{s['steps']} | "
-                  f"{s['replay_ok']}/{s['solved']} | {e['offline_cpu_s']:.0f} |")
+                  f"{s['replay_ok']}/{s['solved']} | {_unsolved(e, body)} | "
+                  f"{e['offline_cpu_s']:.0f} |")
     if report.get("collision_cost"):
         print("\n| problem | states | compiled us/step | shapely us/step | fcl (dynobench) "
               "us/step | disagreements shapely / fcl |")

@@ -290,3 +290,24 @@ def test_the_command_line_names_a_bad_problem_in_one_line(tmp_path):
                                    str(tmp_path / "x")])
     assert bad.exit_code == 2 and bad.output.strip().count("\n") == 0, bad.output
     assert bad.output.startswith("error: nowhere/x: not a problem dynobench ships")
+
+
+@pytest.mark.parametrize("robot", ["acrobot_v0", "integrator2_2d_v0"])
+def test_the_posed_configuration_rebuilds_the_same_problem(robot):
+    # what `run --dynobench` records (the acrobot's links by their function's name) gives,
+    # through the configuration, the problem `planning_problem` poses
+    from rrtcolearn import pipeline
+    from rrtcolearn.config import load_config
+    p = db.read_problem({"acrobot_v0": "acrobot_v0/swing_up_obs_hard",
+                         "integrator2_2d_v0": "integrator2_2d_v0/park"}[robot])
+    cfg = load_config(None, [], options=db.config_options(p))
+    system = db.make_system(p)
+    assert cfg.system.time_weight == {"acrobot_v0": 200.0, "integrator2_2d_v0": 4.0}[robot]
+    start, goal = pipeline.query_states(cfg, system)
+    posed = pipeline.make_problem(system, cfg, start, goal, 0.1)
+    direct = db.planning_problem(p, system)
+    assert np.array_equal(posed.start, direct.start) and np.array_equal(posed.goal, direct.goal)
+    x = np.random.default_rng(4).uniform(system.state_low, system.state_high, (800, 4))
+    if robot != "acrobot_v0":
+        x[:, :2] = np.random.default_rng(5).uniform(p.low, p.high, (800, 2))
+    assert np.array_equal(posed.validity(x), direct.validity(x)) and not posed.validity(x).all()
