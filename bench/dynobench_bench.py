@@ -225,6 +225,10 @@ def _unsolved(entry: dict, body: str) -> str:
     return f"{min(cpu):.0f}-{max(cpu):.0f}" if body == "exact" and cpu else "-"
 
 
+def _num(a) -> str:
+    return f"{a:.3g}" if a is not None and a == a else "-"
+
+
 def _ratio(a, b) -> str:
     return f"{a / b:.2f}" if a == a and b and b == b else "-"
 
@@ -253,8 +257,9 @@ def print_tables(report: dict) -> None:
             s = e[body]
             cpu = s["cpu_median_s"] if s["cpu_median_s"] is not None else nan
             dur = s["duration_median_s"] if s["duration_median_s"] is not None else nan
-            print(f"| {name} | {body} | {s['solved']}/{s['seeds']} | {cpu:.3g} | {dur:.3g} | "
-                  f"{cost:g} / {stamp:.3g} | {rrt.get('cost', nan):g} | {_ratio(dur, cost)} | "
+            print(f"| {name} | {body} | {s['solved']}/{s['seeds']} | {_num(cpu)} | {_num(dur)} | "
+                  f"{_num(cost)} / {_num(stamp)} | {_num(rrt.get('cost', nan))} | "
+                  f"{_ratio(dur, cost)} | "
                   f"{_ratio(cpu, stamp)} | {_ratio(dur, rrt.get('cost', nan))} | "
                   f"{s['dynobench_in_collision']}/{s['exported_states']}; "
                   f"{s['dynobench_steps_in_collision']}/{s['steps']} | "
