@@ -1,25 +1,29 @@
 """dynobench's problems read as the package ships them, planned by RRT-CoLearn (docs/dynobench.md).
 
-Per robot one offline model, `rrtcolearn run --dynobench <robot>/<first problem>` (its
-summary.json gives the offline CPU; an existing run is reused with ``--runs DIR``, the
-robot's run in DIR/<robot>). Per problem ``--seeds`` seeded plans of at most ``--time-limit``
-s (wall; the table names CPU): success, the median CPU to the first solution and median
-path duration, beside the durations and times of the reference solutions the package
+Per robot one offline model, `rrtcolearn run --dynobench <robot>/<first problem>` with the
+robot's recommended settings (its summary.json gives the offline CPU; an existing run is
+reused: ``--runs DIR``, the robot's run in DIR/<robot>). Per problem ``--seeds`` seeded
+plans of at most ``--time-limit`` s of process CPU (and three times that of wall time, so a
+loaded machine cannot stall the run): success, the median CPU to the first solution and the
+median path duration, beside the durations and times of the reference solutions the package
 ships (iDb-A* and RRT + trajectory optimisation, timed by dynobench's authors on another
-machine: ratios only indicate). Every solved path is exported in dynobench's result format
-(`dynobench.result`, on its 0.1 s grid) and every exported state and every RK4 step of it
-is checked by dynobench's own collision checker (its bindings, fcl; the count in collision
-is printed), and re-integrated from the start (`evaluate.replay`: valid, reaches the goal).
-With ``--inflation PROBLEMS`` the same seeds plan a point among boxes grown by the body's
-half-diagonal (`Workspace.inflated`), the conservative stand-in. Last, the collision test's
-cost per RK4 step on the states of the solved paths, edge by edge (50 states a call):
+machine: the ratios only indicate). Every solved path is exported in dynobench's result
+format (`dynobench.result`, on the robot's time grid) and every exported state and every RK4
+step of it is checked by dynobench's own collision checker (its bindings, fcl; the count in
+collision is recorded), and re-integrated from the start (`evaluate.replay`: valid, reaches
+the goal). With ``--inflation PROBLEMS`` the same seeds plan a point among boxes grown by the
+body's half-diagonal (`Workspace.inflated`), the conservative stand-in. Last, the collision
+test's cost per RK4 step on the states of the solved paths, edge by edge (50 states a call):
 compiled (`Workspace.contains`), shapely 2's vectorised ``intersects`` (if installed) and
 dynobench's fcl checker (one call per state), process CPU.
 
-    python bench/dynobench_bench.py [--problems unicycle1_v0/parallelpark_0,...] [--seeds 10]
-        [--time-limit 60] [--runs DIR] [--inflation unicycle1_v0/parallelpark_0,...]
+    python bench/dynobench_bench.py [--models unicycle1_v0,...] [--problems ROBOT/ENV,...]
+        [--seeds 10] [--time-limit 60] [--runs DIR] [--out FILE.json]
+        [--inflation unicycle1_v0/parallelpark_0,...]
 
-Prints the tables and, last, one JSON line.
+Default: every problem of every built model (`dynobench.shipped_problems`). Results are
+written to ``--out`` (atomically) after every problem, and a problem already there with the
+same seeds and limit is not planned again (a stopped run resumes). Prints the tables.
 """
 
 from __future__ import annotations
@@ -35,11 +39,11 @@ import numpy as np
 
 from rrtcolearn import dynobench as db
 from rrtcolearn import pipeline
+from rrtcolearn.data.store import atomic_write_text
 from rrtcolearn.evaluate import replay, sample_path
 from rrtcolearn.planning.rrt import RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
 
-PROBLEMS = "unicycle1_v0/parallelpark_0,unicycle1_v0/kink_0,unicycle1_v0/bugtrap_0"
 TOLERANCE = 0.1
 
 
@@ -61,7 +65,7 @@ def plan_seeds(fitted, read, seeds: int, limit: float, inflated: bool) -> dict:
     rows = []
     for seed in range(seeds):
         plan = RRTCoLearn(problem, fitted.functions, settings).solve(
-            TerminationCondition(time_limit=limit), seed)
+            TerminationCondition(time_limit=3 * limit, cpu_time_limit=limit), seed)
         row = {"seed": seed, "solved": plan.solved, "cpu_s": plan.planning_cpu_s}
         if plan.solved:
             samples = sample_path(fitted.system, plan)
@@ -106,15 +110,21 @@ def collision_cost(read, states: np.ndarray, per_call: int = 50) -> dict:
     except ImportError:
         shapely = None
     if shapely is not None:
-        obstacles = [shapely.Polygon(o.vertices()) for o in read.obstacles]
-        local = db.body(read).shapes[0].vertices()
+        obstacles = np.array([shapely.Polygon(o.vertices()) for o in read.obstacles])
+        body = db.body(read)
+        local = [shape.vertices() for shape in body.shapes]
 
         def library(x):
-            c, s = np.cos(x[:, 2]), np.sin(x[:, 2])
-            px = x[:, None, 0] + c[:, None] * local[:, 0] - s[:, None] * local[:, 1]
-            py = x[:, None, 1] + s[:, None] * local[:, 0] + c[:, None] * local[:, 1]
-            bodies = shapely.polygons(np.stack([px, py], -1))
-            return shapely.intersects(bodies[:, None], np.array(obstacles)[None]).any(1)
+            poses = body.poses(x)  # (N, B, 3)
+            hit = np.zeros(len(x), dtype=bool)
+            for b, v in enumerate(local):
+                px, py, th = (poses[:, b, k][:, None] for k in range(3))
+                c, s = np.cos(th), np.sin(th)
+                corners = np.stack([px + c * v[:, 0] - s * v[:, 1],
+                                    py + s * v[:, 0] + c * v[:, 1]], -1)
+                hit |= shapely.intersects(shapely.polygons(corners)[:, None],
+                                          obstacles[None]).any(1)
+            return hit
 
         library(chunks[0])
         t = time.process_time()
@@ -130,68 +140,139 @@ def collision_cost(read, states: np.ndarray, per_call: int = 50) -> dict:
     return out
 
 
+def _json(obj):
+    """NaN as null (strict JSON)."""
+    if isinstance(obj, float) and obj != obj:
+        return None
+    if isinstance(obj, dict):
+        return {k: _json(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_json(v) for v in obj]
+    return obj
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--problems", default=PROBLEMS)
+    ap.add_argument("--models", default=",".join(db.BUILT))
+    ap.add_argument("--problems", default="", help="ROBOT/ENV,... (default: every problem "
+                    "of --models)")
     ap.add_argument("--seeds", type=int, default=10)
-    ap.add_argument("--time-limit", type=float, default=60.0)
+    ap.add_argument("--time-limit", type=float, default=60.0, help="CPU s per seed")
     ap.add_argument("--runs", type=Path, default=Path("runs/dynobench"))
+    ap.add_argument("--out", type=Path, default=Path("runs/dynobench/bench.json"))
     ap.add_argument("--inflation", default="unicycle1_v0/parallelpark_0,unicycle1_v0/kink_0")
+    ap.add_argument("--no-collision-cost", action="store_true")
+    ap.add_argument("--tables", default="", help="A.json,B.json,...: print the tables of "
+                    "these results (merged) and stop")
     args = ap.parse_args()
-    problems = [p for p in args.problems.split(",") if p]
-    models, report = {}, {"w": None, "tolerance": TOLERANCE, "problems": {}}
-    all_states = {}
+    if args.tables:
+        print_tables(merge([json.loads(Path(f).read_text()) for f in args.tables.split(",")]))
+        return
+    problems = [p for p in args.problems.split(",") if p] or db.shipped_problems(
+        tuple(m for m in args.models.split(",") if m))
+    report = {"tolerance": TOLERANCE, "seeds": args.seeds, "time_limit_cpu_s": args.time_limit,
+              "w": {}, "offline_cpu_s": {}, "problems": {}}
+    if args.out.is_file():
+        old = json.loads(args.out.read_text())
+        if (old.get("seeds"), old.get("time_limit_cpu_s")) == (args.seeds, args.time_limit):
+            report = old
+    models, all_states = {}, {}
     for name in problems:
         read = db.read_problem(name)
         if read.robot not in models:
             models[read.robot] = model_for(read.robot, name, args.runs)
         fitted, offline = models[read.robot]
-        report["w"] = fitted.config.system.time_weight
-        entry = {"robot": read.robot, "offline_cpu_s": offline,
-                 "references": db.references(read)}
-        variants = [False] + ([True] if name in args.inflation.split(",") else [])
-        for inflated in variants:
-            got = plan_seeds(fitted, read, args.seeds, args.time_limit, inflated)
-            entry["inflated" if inflated else "exact"] = summarise(got["rows"])
-            if not inflated:
-                solved = [r["states"] for r in got["rows"] if r["solved"]]
-                if solved:
-                    all_states[name] = (read, np.concatenate(solved))
-        report["problems"][name] = entry
-        print(name, json.dumps(entry), flush=True)
-    report["collision_cost"] = {n: collision_cost(r, s) for n, (r, s) in all_states.items()}
+        report["w"][read.robot] = fitted.config.system.time_weight
+        report["offline_cpu_s"][read.robot] = offline
+        entry = report["problems"].get(name)
+        variants = ["exact"] + (["inflated"] if name in args.inflation.split(",") else [])
+        if entry is None or any(v not in entry for v in variants):
+            entry = {"robot": read.robot, "offline_cpu_s": offline,
+                     "references": db.references(read)}
+            for variant in variants:
+                got = plan_seeds(fitted, read, args.seeds, args.time_limit,
+                                 variant == "inflated")
+                entry[variant] = summarise(got["rows"])
+                if variant == "exact":
+                    entry["rows"] = [{k: v for k, v in r.items() if k != "states"}
+                                     for r in got["rows"]]
+                    solved = [r["states"] for r in got["rows"] if r["solved"]]
+                    if solved:
+                        all_states[name] = (read, np.concatenate(solved))
+            report["problems"][name] = entry
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(args.out, json.dumps(_json(report), indent=1))
+        print(name, json.dumps(_json({k: entry[k] for k in variants})), flush=True)
+    if not args.no_collision_cost:
+        report["collision_cost"] = {n: collision_cost(r, s) for n, (r, s) in
+                                    all_states.items() if r.obstacles}
+        atomic_write_text(args.out, json.dumps(_json(report), indent=1))
     print_tables(report)
-    print(json.dumps(report))
+
+
+def merge(reports: list[dict]) -> dict:
+    """Several runs' results as one (each problem from the last report holding it)."""
+    out = {"tolerance": TOLERANCE, "w": {}, "offline_cpu_s": {}, "problems": {},
+           "collision_cost": {}, "runs": [(r["seeds"], r["time_limit_cpu_s"]) for r in reports]}
+    for r in reports:
+        for key in ("w", "offline_cpu_s", "problems", "collision_cost"):
+            out[key].update(r.get(key) or {})
+    return out
+
+
+def _unsolved(entry: dict, body: str) -> str:
+    cpu = [r["cpu_s"] for r in entry.get("rows", []) if not r["solved"]]
+    return f"{min(cpu):.0f}-{max(cpu):.0f}" if body == "exact" and cpu else "-"
+
+
+def _num(a) -> str:
+    return f"{a:.3g}" if a is not None and a == a else "-"
+
+
+def _ratio(a, b) -> str:
+    return f"{a / b:.2f}" if a == a and b and b == b else "-"
 
 
 def print_tables(report: dict) -> None:
-    print(f"\nw = {report['w']:g}, goal tolerance {report['tolerance']} (weighted, angle "
-          "wrapped); references timed by dynobench's authors on another machine")
-    print("| problem | body | solved | CPU median s | duration median s | iDb-A* duration (s) "
-          "/ time (ms) | RRT+TO duration | ratio to iDb-A* | dynobench collisions "
-          "(exported / steps) | replay ok | offline CPU s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    w = ", ".join(f"{r} {v:g}" for r, v in report["w"].items())
+    runs = report.get("runs", [(report.get("seeds"), report.get("time_limit_cpu_s"))])
+    print(f"\nw: {w}; goal tolerance {report['tolerance']} (weighted, angles wrapped); "
+          f"(seeds, CPU limit s): {runs}; references timed by dynobench's authors on another "
+          "machine; 'unsolved CPU' is the CPU the unsolved seeds got before the limit or "
+          "the wall cap (3 x the limit) stopped them")
+    print("| problem | body | solved | CPU median s | duration median s | iDb-A* duration s "
+          "/ time s | RRT+TO duration s | duration / iDb-A*'s | CPU / iDb-A*'s time | "
+          "duration / RRT+TO's | dynobench: in collision (exported; RK4 steps) | replays "
+          "| unsolved CPU s (min-max) | offline CPU s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, e in report["problems"].items():
         ref = e["references"].get("idbastar_v0_solution_v0", {})
         rrt = e["references"].get("rrt_to_v0_solution_v0", {})
+        nan = float("nan")
+        cost, stamp = ref.get("cost", nan), ref.get("time_stamp", nan)
+        stamp = stamp / 1000 if stamp is not None else nan  # shipped in ms
         for body in ("exact", "inflated"):
             if body not in e:
                 continue
             s = e[body]
-            ratio = s["duration_median_s"] / ref["cost"] if ref else float("nan")
-            print(f"| {name} | {body} | {s['solved']}/{s['seeds']} | {s['cpu_median_s']:.3g} | "
-                  f"{s['duration_median_s']:.3g} | {ref.get('cost', float('nan')):g} / "
-                  f"{ref.get('time_stamp', float('nan')):g} | {rrt.get('cost', float('nan')):g}"
-                  f" | {ratio:.2f} | {s['dynobench_in_collision']}/{s['exported_states']}, "
-                  f"{s['dynobench_steps_in_collision']}/{s['steps']} | {s['replay_ok']} | "
+            cpu = s["cpu_median_s"] if s["cpu_median_s"] is not None else nan
+            dur = s["duration_median_s"] if s["duration_median_s"] is not None else nan
+            print(f"| {name} | {body} | {s['solved']}/{s['seeds']} | {_num(cpu)} | {_num(dur)} | "
+                  f"{_num(cost)} / {_num(stamp)} | {_num(rrt.get('cost', nan))} | "
+                  f"{_ratio(dur, cost)} | "
+                  f"{_ratio(cpu, stamp)} | {_ratio(dur, rrt.get('cost', nan))} | "
+                  f"{s['dynobench_in_collision']}/{s['exported_states']}; "
+                  f"{s['dynobench_steps_in_collision']}/{s['steps']} | "
+                  f"{s['replay_ok']}/{s['solved']} | {_unsolved(e, body)} | "
                   f"{e['offline_cpu_s']:.0f} |")
-    print("\n| problem | states | compiled us/step | shapely us/step | fcl (dynobench) us/step "
-          "| disagreements shapely / fcl |")
-    print("|---|---|---|---|---|---|")
-    for name, c in report["collision_cost"].items():
-        print(f"| {name} | {c['states']} | {c['compiled_us']:.3g} | "
-              f"{c.get('shapely_us', float('nan')):.3g} | {c['fcl_us']:.3g} | "
-              f"{c.get('shapely_disagree', '-')} / {c['fcl_disagree']} |")
+    if report.get("collision_cost"):
+        print("\n| problem | states | compiled us/step | shapely us/step | fcl (dynobench) "
+              "us/step | disagreements shapely / fcl |")
+        print("|---|---|---|---|---|---|")
+        for name, c in report["collision_cost"].items():
+            print(f"| {name} | {c['states']} | {c['compiled_us']:.3g} | "
+                  f"{c.get('shapely_us', float('nan')):.3g} | {c['fcl_us']:.3g} | "
+                  f"{c.get('shapely_disagree', '-')} / {c['fcl_disagree']} |")
 
 
 if __name__ == "__main__":

@@ -27,6 +27,13 @@ Sources and conventions
 * Pendulum: the paper (Section 2), f = (omega, sin(theta) + u), theta = 0 upright.
 * sparse_rrt (Littlefield, Li, Bekris; src/systems/cart_pole.cpp and two_link_acrobot.cpp,
   `update_derivative`): the examples' cart-pole and acrobot, transcribed from the C++.
+* dynobench 0.0.4 (github.com/quimortiz/dynobench): its acrobot and planar quadrotor are the
+  chapter's (`acrobot`, `quadrotor` above) with the parameters of its models/acrobot_v0.yaml
+  and models/quad2d_v0.yaml and g = 9.81 (include/dynobench/acrobot.hpp, planar_rotor.hpp);
+  the acrobot's I1, I2 (1/3 m l^2) are about the pivots, so Ic = I - m lc^2; the quadrotor's
+  inputs are thrusts in units of the hover thrust m g / 2 (src/planar_rotor.cpp,
+  `u_nominal`), its arm l. The 2-D double integrator (src/integrator2_2d.cpp):
+  (x, y, vx, vy)' = (vx, vy, ax, ay).
 """
 
 from __future__ import annotations
@@ -133,6 +140,28 @@ def quadrotor(x: np.ndarray, u: np.ndarray, p: dict = QUADROTOR) -> np.ndarray:
                      -thrust * np.sin(th) / p["m"],
                      thrust * np.cos(th) / p["m"] - p["g"],
                      p["r"] * (u[:, 0] - u[:, 1]) / p["I"]], axis=1)
+
+
+DYNOBENCH_ACROBOT = {"m1": 1.0, "m2": 1.0, "l1": 1.0, "lc1": 0.5, "lc2": 0.5,
+                     "Ic1": 0.33333 - 0.25, "Ic2": 0.33333 - 0.25, "g": 9.81}
+DYNOBENCH_QUAD2D = {"m": 0.034, "r": 0.1, "I": 1e-4, "g": 9.81}
+
+
+def dynobench_quad2d(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """dynobench's quad2d_v0: `quadrotor` with thrusts u (m g / 2) per unit input."""
+    p = DYNOBENCH_QUAD2D
+    return quadrotor(x, np.atleast_2d(u) * p["m"] * p["g"] / 2, p)
+
+
+def dynobench_acrobot(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """dynobench's acrobot_v0: `acrobot` with its parameters."""
+    return acrobot(x, u, DYNOBENCH_ACROBOT)
+
+
+def double_integrator_2d(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """dynobench's integrator2_2d_v0: positions' rates the velocities, velocities' the inputs."""
+    x, u = np.atleast_2d(x), np.atleast_2d(u)
+    return np.concatenate([x[:, 2:4], u + 0 * x[:, :2]], axis=1)
 
 
 def pendulum(x: np.ndarray, u: np.ndarray) -> np.ndarray:

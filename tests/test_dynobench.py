@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from tests import references as ref
 
 from rrtcolearn import dynobench as db
 from rrtcolearn.planning.termination import TerminationCondition
@@ -33,8 +34,17 @@ def test_the_reader_on_every_shipped_problem(name):
     assert len(p.obstacles) == len(obs)
     for mine, theirs in zip(p.obstacles, obs, strict=True):
         assert mine.center.tolist() == theirs["center"] and mine.size.tolist() == theirs["size"]
-    assert p.dt == raw.get("dt", yaml.safe_load(
-        (db.package_dir() / "models" / f"{p.robot}.yaml").read_text()).get("dt", 0.1))
+    model = yaml.safe_load((db.package_dir() / "models" / f"{p.robot}.yaml").read_text())
+    # the C++ parameter structs' defaults where the model file states no dt (acrobot.hpp:
+    # 0.01, integrator2_2d.hpp: 0.1); the shipped references are on that grid
+    assert p.dt == model.get("dt", {"acrobot_v0": 0.01}.get(p.robot, 0.1))
+    for shipped in sorted((p.path.parent / p.path.stem).glob("*_solution_v0.yaml")):
+        sol = yaml.safe_load(shipped.read_text())
+        if sol.get("feasible") == 1:
+            assert len(sol["states"]) - 1 == pytest.approx(sol["cost"] / p.dt, abs=1.01)
+    # every shipped problem poses a planning problem: start and goal in the box, clear
+    problem = db.planning_problem(p, db.make_system(p))
+    assert problem.validity(np.stack([problem.start, problem.goal])).all()
 
 
 GOOD = """name: t
@@ -74,6 +84,23 @@ def test_bad_environment_files_get_one_line_naming_file_and_key(tmp_path, old, n
     assert msg.startswith(f"{path}: {key}:") and "\n" not in msg
 
 
+@pytest.mark.parametrize("robot, key, bad", [
+    ("quad2d_v0", "I", "heavy"), ("quad2d_v0", "size", "[.6]"), ("acrobot_v0", "l1", ".nan"),
+    ("acrobot_v0", "max_torque", "[10]"), ("integrator2_2d_v0", "max_acc", "fast")])
+def test_bad_model_files_of_the_other_robots_name_file_and_key(tmp_path, robot, key, bad):
+    env = tmp_path / "env.yaml"
+    raw = yaml.safe_load((db.package_dir() / "envs" / f"{FIRST[robot]}.yaml").read_text())
+    env.write_text(yaml.safe_dump(raw))
+    models = tmp_path / "models"
+    models.mkdir()
+    text = (db.package_dir() / "models" / f"{robot}.yaml").read_text()
+    (models / f"{robot}.yaml").write_text(text + f"\n{key}: {bad}\n")
+    with pytest.raises(db.DynobenchError) as info:
+        db.read_problem(env, models)
+    msg = str(info.value)
+    assert msg.startswith(f"{models / (robot + '.yaml')}: {key}:") and "\n" not in msg
+
+
 def test_bad_yaml_and_bad_model_files(tmp_path):
     path = tmp_path / "env.yaml"
     path.write_text("environment: [\n")
@@ -90,27 +117,64 @@ def test_bad_yaml_and_bad_model_files(tmp_path):
         db.read_problem("nowhere/x")
 
 
+def _body_polygons(robot, x):
+    """The body's corners written out from dynobench's C++ (collision_geometries and
+    transformation_collision_geometries of each model)."""
+    from test_geometry import corners
+    if robot == "acrobot_v0":  # links 1 x 0.1 centred lc = 0.5 along each, 3 pi / 2 offset
+        a1, a2 = x[0] + 1.5 * np.pi, x[0] + x[1] + 1.5 * np.pi
+        elbow = np.array([np.cos(a1), np.sin(a1)])
+        c2 = elbow + 0.5 * np.array([np.cos(a2), np.sin(a2)])
+        return [corners(0.5 * np.cos(a1), 0.5 * np.sin(a1), 1.0, 0.1, a1),
+                corners(*c2, 1.0, 0.1, a2)]
+    size = {"quad2d_v0": (0.6, 0.2)}.get(robot, (0.5, 0.25))  # the model files' size
+    return [corners(x[0], x[1], *size, 0.0 if robot == "integrator2_2d_v0" else x[2])]
+
+
 @pytest.mark.parametrize("name", ["unicycle1_v0/parallelpark_0", "unicycle1_v0/kink_0",
-                                  "unicycle1_v0/bugtrap_0", "quad2d_v0/quad_obs_column"])
+                                  "unicycle1_v0/bugtrap_0", "quad2d_v0/quad_obs_column",
+                                  "quad2d_v0/quad_bugtrap", "acrobot_v0/swing_up_obs_hard",
+                                  "integrator2_2d_v0/park"])
 def test_the_exact_body_agrees_with_dynobenchs_checker_and_a_polygon_test(name):
     # dynobench's checker (fcl) is asked only where the exact test finds the body free: its
     # penetration query on a body deep in an obstacle can run for minutes (e.g.
     # [2.324, 0.211, -1.42] on parallelpark_0); where the body collides the reference is the
-    # brute-force polygon test of test_geometry (segment crossings, point in polygon)
+    # brute-force polygon test of test_geometry (segment crossings, point in polygon) on
+    # the body written out by hand
     from test_geometry import corners, polys_meet
     p = db.read_problem(name)
+    system = db.make_system(p)
     rng = np.random.default_rng(7)
-    x = np.zeros((1500, len(p.start)))
-    x[:, :2] = rng.uniform(p.low, p.high, (1500, 2))
-    x[:, 2] = rng.uniform(-np.pi, np.pi, 1500)
+    x = rng.uniform(system.state_low, system.state_high, (1500, system.n_states))
+    if p.robot != "acrobot_v0":
+        x[:, :2] = rng.uniform(p.low, p.high, (1500, 2))
     mine = db.workspace(p).contains(x)
-    assert 50 < mine.sum() < 1450
+    assert 40 < mine.sum() < 1450
     theirs = db.dynobench_distances(p, x[~mine])
     assert np.all(theirs > -1e-5)  # fcl's geometry is in single precision
-    w, h = p.model["size"]
+    obstacles = [corners(*o.center, *o.size, 0.0) for o in p.obstacles]
     for xi in x[mine]:
-        assert any(polys_meet(corners(*xi[:2], w, h, xi[2]), corners(*o.center, *o.size, 0.0))
-                   for o in p.obstacles)
+        assert any(polys_meet(b, o) for b in _body_polygons(p.robot, xi) for o in obstacles)
+    for xi in x[~mine][:200]:
+        assert not any(polys_meet(b, o) for b in _body_polygons(p.robot, xi)
+                       for o in obstacles)
+
+
+def test_a_body_of_links_is_written_and_read_by_its_functions_name():
+    from rrtcolearn.geometry import Workspace
+    p = db.read_problem("acrobot_v0/swing_up_obs")
+    ws = db.workspace(p)
+    again = Workspace.from_dict(yaml.safe_load(yaml.safe_dump(ws.to_dict())))
+    x = np.random.default_rng(2).uniform(-np.pi, np.pi, (500, 4))
+    assert again.body.fk == "rrtcolearn.dynobench:acrobot_links"
+    assert np.array_equal(again.contains(x), ws.contains(x)) and ws.contains(x).any()
+    spec = ws.to_dict()
+    spec["body"]["fk"] = "rrtcolearn.dynobench:no_such_function"
+    with pytest.raises(ValueError, match=r"^fk: cannot find 'rrtcolearn\.dynobench:no_such"):
+        Workspace.from_dict(spec)
+    spec["body"]["fk"] = "a function"
+    with pytest.raises(ValueError, match=r"^fk: a body placed by forward kinematics"):
+        Workspace.from_dict(spec)
 
 
 def test_a_plan_exported_in_dynobenchs_format_passes_its_checker(tmp_path):
@@ -149,10 +213,46 @@ def test_references_are_the_shipped_feasible_solutions():
     assert not db.workspace(p).contains(np.array(sol["states"])).any()
 
 
-def test_unbuilt_models_say_so():
-    p = db.read_problem("acrobot_v0/swing_up_obs")
-    with pytest.raises(db.DynobenchError, match=r"robots\[0\]\.type: acrobot_v0 is read but not"):
-        db.make_system(p)
+FIRST = {m: next(p for p in SHIPPED if p.startswith(m + "/")) for m in db.MODELS}
+REFERENCES = {"quad2d_v0": ref.dynobench_quad2d, "acrobot_v0": ref.dynobench_acrobot,
+              "integrator2_2d_v0": ref.double_integrator_2d}
+
+
+def _samples(system, n=300, seed=0):
+    rng = np.random.default_rng(seed)
+    lo, hi = system.input_limits()
+    return (rng.uniform(system.state_low, system.state_high, (n, system.n_states)),
+            rng.uniform(lo, hi, (n, system.n_inputs)))
+
+
+@pytest.mark.parametrize("robot", sorted(REFERENCES))
+def test_the_built_systems_against_hand_written_references(robot):
+    # tests/references.py: Tedrake's manipulator equations solved numerically (the package
+    # transcribes dynobench's closed form), dynobench's parameters written out by hand
+    system = db.make_system(db.read_problem(FIRST[robot]))
+    x, u = _samples(system)
+    assert np.allclose(system.dynamics(x, u), REFERENCES[robot](x, u), rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("robot", db.MODELS)
+def test_the_built_systems_against_dynobenchs_own_model(robot):
+    # its compiled calcV, input box and velocity bounds (x_lb, x_ub beyond the position)
+    p = db.read_problem(FIRST[robot])
+    system, theirs = db.make_system(p), db.dynobench_model(p)
+    x, u = _samples(system, seed=1)
+    v = np.zeros(system.n_states)
+    for xi, ui, fi in zip(x, u, system.dynamics(x, u), strict=True):
+        theirs.calcV(v, xi, ui)
+        assert np.allclose(fi, v, rtol=1e-12, atol=1e-12)
+    lo, hi = system.input_limits()
+    assert np.array_equal(lo, theirs.get_u_lb()) and np.array_equal(hi, theirs.get_u_ub())
+    first = 0 if robot == "acrobot_v0" else 2  # velocities (and turn rates) after the pose
+    bounded = [j for j in range(first, system.n_states) if j not in system.angle_dims]
+    assert np.array_equal(system.state_low[bounded], theirs.get_x_lb()[bounded])
+    assert np.array_equal(system.state_high[bounded], theirs.get_x_ub()[bounded])
+    assert set(system.angle_dims) == {"unicycle1_v0": {2}, "unicycle2_v0": {2},
+                                      "quad2d_v0": {2}, "acrobot_v0": {0, 1},
+                                      "integrator2_2d_v0": set()}[robot]
 
 
 def test_the_plan_figure_draws_the_obstacles_and_the_body_along_the_path():
@@ -190,3 +290,24 @@ def test_the_command_line_names_a_bad_problem_in_one_line(tmp_path):
                                    str(tmp_path / "x")])
     assert bad.exit_code == 2 and bad.output.strip().count("\n") == 0, bad.output
     assert bad.output.startswith("error: nowhere/x: not a problem dynobench ships")
+
+
+@pytest.mark.parametrize("robot", ["acrobot_v0", "integrator2_2d_v0"])
+def test_the_posed_configuration_rebuilds_the_same_problem(robot):
+    # what `run --dynobench` records (the acrobot's links by their function's name) gives,
+    # through the configuration, the problem `planning_problem` poses
+    from rrtcolearn import pipeline
+    from rrtcolearn.config import load_config
+    p = db.read_problem({"acrobot_v0": "acrobot_v0/swing_up_obs_hard",
+                         "integrator2_2d_v0": "integrator2_2d_v0/park"}[robot])
+    cfg = load_config(None, [], options=db.config_options(p))
+    system = db.make_system(p)
+    assert cfg.system.time_weight == {"acrobot_v0": 200.0, "integrator2_2d_v0": 4.0}[robot]
+    start, goal = pipeline.query_states(cfg, system)
+    posed = pipeline.make_problem(system, cfg, start, goal, 0.1)
+    direct = db.planning_problem(p, system)
+    assert np.array_equal(posed.start, direct.start) and np.array_equal(posed.goal, direct.goal)
+    x = np.random.default_rng(4).uniform(system.state_low, system.state_high, (800, 4))
+    if robot != "acrobot_v0":
+        x[:, :2] = np.random.default_rng(5).uniform(p.low, p.high, (800, 2))
+    assert np.array_equal(posed.validity(x), direct.validity(x)) and not posed.validity(x).all()

@@ -243,9 +243,14 @@ class ShapeObstacle(_ShapeKeys):
 
 class BodyConfig(_ShapeKeys):
     """The robot's body: a shape in its own frame (box size, disc radius, ...) and ``pose``,
-    the state indices placing it: [ix, iy] or [ix, iy, itheta] (planar), [ix, iy, iz] (3-D)."""
+    the state indices placing it: [ix, iy] or [ix, iy, itheta] (planar), [ix, iy, iz] (3-D);
+    or links: ``shapes`` (a list of shapes) placed by ``fk``, the ``module:attribute`` name
+    of a forward-kinematics function (states (N, n) -> poses (N, links, 3))."""
 
-    pose: list[int]
+    shape: Literal["box", "disc", "polygon", "sphere"] | None = None
+    shapes: list[dict[str, Any]] | None = None
+    pose: list[int] | None = None
+    fk: str | None = None
 
     @model_validator(mode="after")
     def _valid(self) -> BodyConfig:

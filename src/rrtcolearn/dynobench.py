@@ -15,6 +15,7 @@ A system is named ``rrtcolearn.dynobench:<robot>`` so that a fitted run rebuilds
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import itertools
 import math
@@ -29,8 +30,8 @@ from rrtcolearn.geometry import Body, Box, Disc, Workspace
 
 MODELS = ("unicycle1_v0", "unicycle2_v0", "quad2d_v0", "acrobot_v0", "integrator2_2d_v0")
 """The input-affine robot models of dynobench 0.0.4 this module reads."""
-BUILT = ("unicycle1_v0", "unicycle2_v0")
-"""Those it builds systems for (the others: read, not yet planned)."""
+BUILT = MODELS
+"""Those it builds systems for: all of them."""
 
 
 class DynobenchError(RRTCoLearnError, ValueError):
@@ -82,8 +83,8 @@ class DynobenchProblem:
 
     @property
     def dt(self) -> float:
-        """dynobench's time grid of this robot (its model's ``dt``, 0.1 s by default)."""
-        return float(self.model.get("dt", 0.1))
+        """dynobench's time grid of this robot (its model's ``dt``, else its C++ default)."""
+        return float(self.model["dt"])
 
 
 def _yaml(path: Path) -> dict:
@@ -161,8 +162,17 @@ def read_problem(problem: str | Path, models: Path | None = None) -> DynobenchPr
     model_path = (models or package_dir() / "models") / f"{robot}.yaml"
     if not model_path.is_file():
         raise DynobenchError(f"{path}: robots[0].type: no model file {model_path}")
-    model = _yaml(model_path)
-    for key in _MODEL_KEYS.get(robot, ()):
+    model = _read_model(model_path, robot)
+    name = f"{robot}/{path.stem}" if path.parent.name == robot else str(path)
+    return DynobenchProblem(name, path, robot, model, low, high, tuple(obstacles), start,
+                            goal)
+
+
+def _read_model(path: Path, robot: str) -> dict[str, Any]:
+    """The model file's parameters over dynobench's defaults, those the system reads checked
+    as numbers; DynobenchError naming the file and key."""
+    model = {**_DEFAULTS[robot], **_yaml(path)}
+    for key in _MODEL_KEYS[robot]:
         value = model.get(key)
         if isinstance(value, str):  # YAML 1.1 reads 1e-4 as text; dynobench's C++ as a number
             try:
@@ -170,33 +180,76 @@ def read_problem(problem: str | Path, models: Path | None = None) -> DynobenchPr
             except ValueError:
                 pass
         if key == "size":
-            _numbers(model_path, key, value, 2)
+            _numbers(path, key, value, 2)
         elif not isinstance(value, int | float) or isinstance(value, bool) \
                 or not math.isfinite(value):
-            raise DynobenchError(f"{model_path}: {key}: expected a number, got {value!r}")
-    name = f"{robot}/{path.stem}" if path.parent.name == robot else str(path)
-    return DynobenchProblem(name, path, robot, model, low, high, tuple(obstacles), start,
-                            goal)
+            raise DynobenchError(f"{path}: {key}: expected a number, got {value!r}")
+    return model
 
 
+# the parameters each built system reads (checked as numbers) ...
 _MODEL_KEYS = {
-    "unicycle1_v0": ("max_vel", "min_vel", "max_angular_vel", "min_angular_vel", "size"),
+    "unicycle1_v0": ("max_vel", "min_vel", "max_angular_vel", "min_angular_vel", "size",
+                     "dt"),
     "unicycle2_v0": ("max_vel", "min_vel", "max_angular_vel", "min_angular_vel",
-                     "max_acc_abs", "max_angular_acc", "size"),
-    "quad2d_v0": ("max_f", "m", "I", "l", "size"),
-    "acrobot_v0": ("l1", "l2", "lc1", "lc2", "m1", "m2", "I1", "I2", "max_torque"),
+                     "max_acc_abs", "max_angular_acc", "size", "dt"),
+    "quad2d_v0": ("max_f", "m", "I", "l", "max_vel", "max_angular_vel", "size", "dt"),
+    "acrobot_v0": ("l1", "l2", "lc1", "lc2", "m1", "m2", "I1", "I2", "max_torque",
+                   "max_angular_vel", "dt"),
+    "integrator2_2d_v0": ("max_vel", "max_acc", "size", "dt"),
 }
+# ... and, where the model file leaves one out, its default in dynobench's C++ parameter
+# structs (include/dynobench/<model>.hpp: Quad2d_params, Acrobot_params,
+# Integrator2_2d_params; unicycle1.hpp, unicycle2.hpp): integrator2_2d_v0.yaml states none
+_DEFAULTS = {
+    "unicycle1_v0": {"dt": 0.1},
+    "unicycle2_v0": {"dt": 0.1},
+    "quad2d_v0": {"dt": 0.01, "drag_against_vel": False},
+    "acrobot_v0": {"dt": 0.01},
+    "integrator2_2d_v0": {"dt": 0.1, "max_vel": 1.0, "max_acc": 1.0, "size": [0.5, 0.25],
+                          "shape": "box"},
+}
+G = 9.81
+"""Gravity as dynobench's C++ models state it (Model_quad2d::g, Model_acrobot::g)."""
 
 
 def body(problem: DynobenchProblem) -> Body:
-    """The robot's body as its model states it: a box of ``size`` at (x, y, heading)."""
-    if problem.robot not in ("unicycle1_v0", "unicycle2_v0", "quad2d_v0"):
-        raise DynobenchError(f"{problem.path}: robots[0].type: the body of {problem.robot} "
-                             "is not built here yet")
+    """The robot's body as dynobench collides it (the model's ``collision_geometries`` and
+    ``transformation_collision_geometries``): a box of the model's ``size`` at (x, y,
+    heading) for the unicycles and quad2d, at (x, y) unturned for the double integrator;
+    the acrobot's two links as boxes l1 x 0.1 and l2 x 0.1 along the links (`acrobot_links`)."""
     if problem.model.get("shape", "box") != "box":
         raise DynobenchError(f"{problem.path}: shape: only box bodies are read")
-    return Body((Box(np.zeros(2), np.asarray(problem.model["size"], dtype=float)),),
-                (0, 1, 2))
+    if problem.robot == "acrobot_v0":
+        m = problem.model
+        return Body((Box(np.array([m["lc1"], 0.0]), np.array([m["l1"], _LINK_WIDTH])),
+                     Box(np.array([m["lc2"], 0.0]), np.array([m["l2"], _LINK_WIDTH]))),
+                    fk="rrtcolearn.dynobench:acrobot_links")
+    pose = (0, 1) if problem.robot == "integrator2_2d_v0" else (0, 1, 2)
+    return Body((Box(np.zeros(2), np.asarray(problem.model["size"], dtype=float)),), pose)
+
+
+_LINK_WIDTH = 0.1  # Model_acrobot: `const double width = .1` (not a model parameter)
+
+
+def acrobot_links(states: np.ndarray) -> np.ndarray:
+    """Forward kinematics of dynobench's acrobot (src/acrobot.cpp,
+    ``transformation_collision_geometries``): states (N, 4) -> the poses (N, 2, 3) of its
+    two links' pivots, heading along the link. Angles are offset by 3 pi / 2: q1 = 0 hangs
+    straight down from the pivot at the origin; link 2 turns by q1 + q2 from the elbow."""
+    x = np.atleast_2d(states)
+    l1 = _acrobot_parameters()["l1"]
+    a1 = x[:, 0] + 1.5 * np.pi
+    a2 = a1 + x[:, 1]
+    out = np.zeros((len(x), 2, 3))
+    out[:, 0, 2] = a1
+    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = l1 * np.cos(a1), l1 * np.sin(a1), a2
+    return out
+
+
+@functools.cache
+def _acrobot_parameters() -> dict:
+    return _model("acrobot_v0")
 
 
 def workspace(problem: DynobenchProblem) -> Workspace:
@@ -215,15 +268,22 @@ def _position_box(robot: str) -> tuple[list[float], list[float]]:
     return np.min(lows, axis=0).tolist(), np.max(highs, axis=0).tolist()
 
 
+def _model(robot: str) -> dict:
+    return _read_model(package_dir() / "models" / f"{robot}.yaml", robot)
+
+
+def _common(robot: str, angle_dims: list[int]) -> dict:
+    return {"angle_dims": angle_dims, "description": f"dynobench {robot}",
+            "defaults": {"config": _RECOMMENDED[robot]}}
+
+
 def _unicycle(robot: str):
     import sympy
 
     from rrtcolearn.systems.symbolic import build_system
-    model = _yaml(package_dir() / "models" / f"{robot}.yaml")
+    model = _model(robot)
     lo, hi = _position_box(robot)
     x, y, th = sympy.symbols("x y theta", real=True)
-    common = {"angle_dims": [2], "description": f"dynobench {robot}",
-              "defaults": {"config": _RECOMMENDED}}
     if robot == "unicycle1_v0":
         v, w = sympy.symbols("v omega", real=True)
         return build_system(
@@ -231,7 +291,7 @@ def _unicycle(robot: str):
             drift=[0, 0, 0], input_matrix=[[sympy.cos(th), 0], [sympy.sin(th), 0], [0, 1]],
             input_low=[model["min_vel"], model["min_angular_vel"]],
             input_high=[model["max_vel"], model["max_angular_vel"]],
-            state_low=[*lo, -math.pi], state_high=[*hi, math.pi], **common)
+            state_low=[*lo, -math.pi], state_high=[*hi, math.pi], **_common(robot, [2]))
     v, w, a, al = sympy.symbols("v omega a alpha", real=True)
     return build_system(
         f"rrtcolearn.dynobench:{robot}", [x, y, th, v, w], [a, al],
@@ -240,12 +300,25 @@ def _unicycle(robot: str):
         input_low=[-model["max_acc_abs"], -model["max_angular_acc"]],
         input_high=[model["max_acc_abs"], model["max_angular_acc"]],
         state_low=[*lo, -math.pi, model["min_vel"], model["min_angular_vel"]],
-        state_high=[*hi, math.pi, model["max_vel"], model["max_angular_vel"]], **common)
+        state_high=[*hi, math.pi, model["max_vel"], model["max_angular_vel"]],
+        **_common(robot, [2]))
 
 
-# w = 1: dynobench minimises duration; at the input limits u^T u / 2 is at most 0.25 per
-# second for both unicycles, so time is at least 80% of the running cost w + u^T u / 2
-_RECOMMENDED = {"system": {"time_weight": 1.0}}
+# The time weight w of each robot: dynobench minimises duration, and the running cost is
+# w + u^T u / 2; w = 4 max(u^T u / 2) over the input box makes time at least 80% of it at
+# the input limits (the unicycles: 1; quad2d: f <= 1.3, 4 x 1.69 = 6.76; the acrobot:
+# |u| <= 10, 200; the double integrator: |a| <= 1, 4) while the data stay those of a
+# smooth optimal control problem. The simulations: the derived count for the first-order
+# unicycle (63 000), 30 000 for the others (the derived count grows by 2.5 per pair of
+# states: 390 000 for quad2d's six), so each model's offline CPU stays well under 10 min.
+_RECOMMENDED = {
+    "unicycle1_v0": {"system": {"time_weight": 1.0}},
+    "unicycle2_v0": {"system": {"time_weight": 1.0}, "generate": {"n_simulations": 30000}},
+    "quad2d_v0": {"system": {"time_weight": 6.76}, "generate": {"n_simulations": 30000}},
+    "acrobot_v0": {"system": {"time_weight": 200.0}, "generate": {"n_simulations": 30000}},
+    "integrator2_2d_v0": {"system": {"time_weight": 4.0},
+                          "generate": {"n_simulations": 30000}},
+}
 
 
 def unicycle1_v0():
@@ -258,6 +331,89 @@ def unicycle2_v0():
     """dynobench's second-order unicycle: v' = a, omega' = alpha, |a|, |alpha| <= 0.25 and
     |v|, |omega| <= 0.5 as state constraints."""
     return _unicycle("unicycle2_v0")
+
+
+def quad2d_v0():
+    """dynobench's planar quadrotor (src/planar_rotor.cpp, ``Model_quad2d::calcV``): state
+    (x, y, yaw, x', y', yaw'), inputs the two rotors' thrusts f1, f2 in [0, max_f] in units
+    of the hover thrust m g / 2: x'' = -(f1 + f2) (m g / 2) sin(yaw) / m, y'' = (f1 + f2)
+    (m g / 2) cos(yaw) / m - g, yaw'' = l (f1 - f2) (m g / 2) / I; |x'|, |y'| <= max_vel,
+    |yaw'| <= max_angular_vel (its x_lb, x_ub). No drag (the model's drag_against_vel is
+    false)."""
+    import sympy
+
+    from rrtcolearn.systems.symbolic import build_system
+    robot = "quad2d_v0"
+    m = _model(robot)
+    if m["drag_against_vel"]:
+        raise DynobenchError(f"{package_dir() / 'models' / 'quad2d_v0.yaml'}: "
+                             "drag_against_vel: drag is not built")
+    lo, hi = _position_box(robot)
+    x, y, th, vx, vy, w = sympy.symbols("x y yaw vx vy omega", real=True)
+    f1, f2 = sympy.symbols("f1 f2", real=True)
+    k = sympy.Float(m["m"]) * G / 2  # u_nominal: the thrust in newtons per unit input
+    c, s = sympy.cos(th), sympy.sin(th)
+    acc = k / m["m"]
+    turn = m["l"] * k / m["I"]
+    return build_system(
+        f"rrtcolearn.dynobench:{robot}", [x, y, th, vx, vy, w], [f1, f2],
+        drift=[vx, vy, w, 0, -G, 0],
+        input_matrix=[[0, 0], [0, 0], [0, 0], [-acc * s, -acc * s], [acc * c, acc * c],
+                      [turn, -turn]],
+        input_low=[0.0, 0.0], input_high=[m["max_f"], m["max_f"]],
+        state_low=[*lo, -math.pi, -m["max_vel"], -m["max_vel"], -m["max_angular_vel"]],
+        state_high=[*hi, math.pi, m["max_vel"], m["max_vel"], m["max_angular_vel"]],
+        **_common(robot, [2]))
+
+
+def acrobot_v0():
+    """dynobench's acrobot (src/acrobot.cpp, ``Model_acrobot::calcV``, transcribed): state
+    (q1, q2, q1', q2'), q1 = 0 hanging down, q2 the elbow relative to link 1, the torque u at
+    the elbow, |u| <= max_torque, |q1'|, |q2'| <= max_angular_vel; I1, I2 about the pivots."""
+    import sympy
+
+    from rrtcolearn.systems.symbolic import build_system
+    robot = "acrobot_v0"
+    p = _model(robot)
+    q1, q2, d1, d2, u = sympy.symbols("q1 q2 q1dot q2dot u", real=True)
+    m1, m2, l1, lc1, lc2, i1, i2 = (sympy.Float(p[k]) for k in
+                                    ("m1", "m2", "l1", "lc1", "lc2", "I1", "I2"))
+    g = sympy.Float(G)
+    a = (g * lc1 * m1 * sympy.sin(q1) + g * m2 * (l1 * sympy.sin(q1) + lc2 * sympy.sin(q1 + q2))
+         - 2 * l1 * lc2 * m2 * d1 * d2 * sympy.sin(q2) - l1 * lc2 * m2 * d2**2 * sympy.sin(q2))
+    b = g * lc2 * m2 * sympy.sin(q1 + q2) + l1 * lc2 * m2 * d1**2 * sympy.sin(q2) - u
+    det = i1 * i2 + i2 * l1**2 * m2 - l1**2 * lc2**2 * m2**2 * sympy.cos(q2)**2
+    q1dd = (-i2 * a + (i2 + l1 * lc2 * m2 * sympy.cos(q2)) * b) / det
+    q2dd = ((i2 + l1 * lc2 * m2 * sympy.cos(q2)) * a
+            - b * (i1 + i2 + l1**2 * m2 + 2 * l1 * lc2 * m2 * sympy.cos(q2))) / det
+    # input-affine: the drift at u = 0 and the input column d/du (both exact: linear in u)
+    drift = [d1, d2, q1dd.subs(u, 0), q2dd.subs(u, 0)]
+    column = [0, 0, sympy.diff(q1dd, u), sympy.diff(q2dd, u)]
+    vmax = p["max_angular_vel"]
+    return build_system(
+        f"rrtcolearn.dynobench:{robot}", [q1, q2, d1, d2], [u], drift=drift,
+        input_matrix=[[e] for e in column], input_low=[-p["max_torque"]],
+        input_high=[p["max_torque"]], state_low=[-math.pi, -math.pi, -vmax, -vmax],
+        state_high=[math.pi, math.pi, vmax, vmax], **_common(robot, [0, 1]))
+
+
+def integrator2_2d_v0():
+    """dynobench's 2-D double integrator (src/integrator2_2d.cpp, ``calcV``): state (x, y,
+    vx, vy), inputs the accelerations, |a| <= max_acc, |v| <= max_vel (defaults 1, 1:
+    Integrator2_2d_params; the model file states none)."""
+    import sympy
+
+    from rrtcolearn.systems.symbolic import build_system
+    robot = "integrator2_2d_v0"
+    m = _model(robot)
+    lo, hi = _position_box(robot)
+    x, y, vx, vy, ax, ay = sympy.symbols("x y vx vy ax ay", real=True)
+    return build_system(
+        f"rrtcolearn.dynobench:{robot}", [x, y, vx, vy], [ax, ay], drift=[vx, vy, 0, 0],
+        input_matrix=[[0, 0], [0, 0], [1, 0], [0, 1]],
+        input_low=[-m["max_acc"]] * 2, input_high=[m["max_acc"]] * 2,
+        state_low=[*lo, -m["max_vel"], -m["max_vel"]],
+        state_high=[*hi, m["max_vel"], m["max_vel"]], **_common(robot, []))
 
 
 def make_system(problem: DynobenchProblem):
@@ -283,7 +439,7 @@ def planning_problem(problem: DynobenchProblem, system, goal_tolerance: float = 
     plan = config_options(problem)["plan"]
     ws = workspace(problem)
     return PlanningProblem.create(
-        system, problem.start, problem.goal, goal_tolerance,
+        system, plan["start"], plan["goal"], goal_tolerance,
         obstacles=[ws.inflated() if inflated else ws], state_low=plan["state_low"],
         state_high=plan["state_high"], wrap_goal=True)
 
@@ -331,10 +487,10 @@ def references(problem: DynobenchProblem) -> dict[str, dict[str, float]]:
     return out
 
 
-def dynobench_distances(problem: DynobenchProblem, states: np.ndarray) -> np.ndarray:
-    """dynobench's own collision checker (its bindings, fcl, the model's body) on every
-    state: the signed distance to the nearest obstacle (<= 0: in collision). The bindings
-    print while loading; that output is silenced here."""
+def dynobench_model(problem: DynobenchProblem):
+    """dynobench's own model of the problem's robot in its environment (its compiled
+    bindings: ``calcV``, ``collision_distance``, bounds). The bindings print while loading;
+    that output is silenced here."""
     import os
 
     saved = os.dup(1)
@@ -343,11 +499,19 @@ def dynobench_distances(problem: DynobenchProblem, states: np.ndarray) -> np.nda
             os.dup2(null.fileno(), 1)
             import dynobench
 
-            robot = dynobench.robot_factory_with_env(
+            return dynobench.robot_factory_with_env(
                 str(package_dir() / "models" / f"{problem.robot}.yaml"), str(problem.path))
     finally:
         os.dup2(saved, 1)
         os.close(saved)
+
+
+def dynobench_distances(problem: DynobenchProblem, states: np.ndarray) -> np.ndarray:
+    """dynobench's own collision checker (its bindings, fcl, the model's body) on every
+    state: the signed distance to the nearest obstacle (<= 0: in collision)."""
+    import dynobench
+
+    robot = dynobench_model(problem)
     out = dynobench.CollisionOut()
     dist = np.empty(len(states))
     for i, x in enumerate(np.asarray(states, dtype=np.float64)):
@@ -361,15 +525,18 @@ def config_options(problem: DynobenchProblem) -> dict[str, dict[str, Any]]:
     system, and the plan's query, state constraints, body and obstacles, so that a run
     records them and its figure draws them."""
     system = make_system(problem)
-    low, high = system.state_low.tolist(), system.state_high.tolist()  # the angle's turn
-    low[:2], high[:2] = problem.low[:2].tolist(), problem.high[:2].tolist()
-    if problem.robot == "unicycle2_v0":
-        m = problem.model
-        low[3:5] = [m["min_vel"], m["min_angular_vel"]]
-        high[3:5] = [m["max_vel"], m["max_angular_vel"]]
-    b = body(problem)
+    # the system's box bounds the angles (a turn) and the velocities as dynobench's x_lb,
+    # x_ub do; the environment's box bounds the position (the acrobot has none: fixed base)
+    low, high = system.state_low.tolist(), system.state_high.tolist()
+    if problem.robot != "acrobot_v0":
+        low[:2], high[:2] = problem.low[:2].tolist(), problem.high[:2].tolist()
+    # angles in [-pi, pi), as dynobench's `ensure` wraps them (the acrobot's goal is
+    # 3.141593, past pi)
+    start, goal = problem.start.copy(), problem.goal.copy()
+    for j in system.angle_dims:
+        start[j], goal[j] = (np.mod(np.array([start[j], goal[j]]) + np.pi, 2 * np.pi) - np.pi)
     return {"system": {"name": system_name(problem.robot)},
-            "plan": {"start": problem.start.tolist(), "goal": problem.goal.tolist(),
+            "plan": {"start": start.tolist(), "goal": goal.tolist(),
                      "state_low": low, "state_high": high, "wrap_goal": True,
                      "obstacles": [o.to_dict() for o in problem.obstacles],
-                     "body": {**b.shapes[0].to_dict(), "pose": list(b.pose)}}}
+                     "body": body(problem).to_dict()}}

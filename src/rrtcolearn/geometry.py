@@ -175,11 +175,12 @@ class Body:
     point). The state places them by ``pose``: planar (ix, iy) or (ix, iy, itheta) state
     indices (position and heading), or 3-D (ix, iy, iz) (position; 3-D bodies do not turn);
     or, for links (an arm), by ``fk``: states (N, n) -> poses (N, len(shapes), 3), one
-    planar pose per shape."""
+    planar pose per shape; a function, or its ``module:attribute`` name (so that a plan
+    file records it and `check_plan` rebuilds it, as a system is named)."""
 
     shapes: tuple[Shape, ...]
     pose: tuple[int, ...] = ()
-    fk: Poses | None = None
+    fk: Poses | str | None = None
 
     def __post_init__(self) -> None:
         if not self.shapes:
@@ -204,7 +205,8 @@ class Body:
         """(N, B, 3) planar poses (x, y, heading) or 3-D positions of the shapes' frames."""
         x = np.atleast_2d(states)
         if self.fk is not None:
-            p = np.asarray(self.fk(x), dtype=np.float64)
+            fk = _named_function(self.fk) if isinstance(self.fk, str) else self.fk
+            p = np.asarray(fk(x), dtype=np.float64)
             if p.shape != (len(x), len(self.shapes), 3):
                 raise ValueError(f"fk must return poses of shape ({len(x)}, "
                                  f"{len(self.shapes)}, 3), got {p.shape}")
@@ -216,7 +218,9 @@ class Body:
     def to_dict(self) -> dict:
         d = (self.shapes[0].to_dict() if len(self.shapes) == 1
              else {"shapes": [s.to_dict() for s in self.shapes]})
-        return {**d, "pose": list(self.pose)} if self.pose else {**d, "fk": "a function"}
+        if self.pose:
+            return {**d, "pose": list(self.pose)}
+        return {**d, "fk": self.fk if isinstance(self.fk, str) else "a function"}
 
     @classmethod
     def from_dict(cls, spec: dict, n_states: int | None = None) -> Body:
@@ -225,8 +229,17 @@ class Body:
         if not isinstance(spec, dict):
             raise ValueError(f"body must be a table, got {spec!r}")
         if "fk" in spec:
-            raise ValueError("fk: a body placed by a forward-kinematics function cannot be "
-                             "read from a file")
+            fk = spec["fk"]
+            if not isinstance(fk, str) or ":" not in fk or "pose" in spec:
+                raise ValueError(f"fk: a body placed by forward kinematics is read from a "
+                                 f"file by the function's module:attribute name (and no "
+                                 f"pose), got {fk!r}")
+            _named_function(fk)
+            rest = {k: v for k, v in spec.items() if k != "fk"}
+            shapes = rest.pop("shapes", None)
+            parts = [shape_from_dict(s) for s in shapes] if shapes is not None and not rest \
+                else [shape_from_dict(rest)]
+            return cls(tuple(parts), fk=fk)
         if "pose" not in spec:
             raise ValueError("pose: a body needs the state indices of its pose")
         pose = spec["pose"]
@@ -240,6 +253,20 @@ class Body:
         parts = [shape_from_dict(s) for s in shapes] if shapes is not None and not rest \
             else [shape_from_dict(rest)]
         return cls(tuple(parts), tuple(pose))
+
+
+def _named_function(name: str) -> Poses:
+    """The function ``module:attribute`` names; ValueError naming it otherwise."""
+    import importlib
+
+    module, _, attribute = name.partition(":")
+    try:
+        fn = getattr(importlib.import_module(module), attribute)
+    except (ImportError, AttributeError, ValueError) as exc:
+        raise ValueError(f"fk: cannot find {name!r} ({exc})") from None
+    if not callable(fn):
+        raise ValueError(f"fk: {name!r} is not a function")
+    return fn
 
 
 def _polygon_arrays(shapes: Sequence[Shape]) -> tuple[np.ndarray, ...]:
