@@ -364,10 +364,15 @@ def test_local_linear_steering_is_deterministic_and_survives_save_load(tmp_path)
     mean = LearnedFunctions(validity_threshold=0.8).fit(data, system).query(Q)[1]
     assert not np.array_equal(a, mean)
     f.save(tmp_path / "f.npz")
-    g, _ = LearnedFunctions.load(tmp_path / "f.npz")
-    assert g.steering == "local_linear"
+    g, meta = LearnedFunctions.load(tmp_path / "f.npz")
+    assert g.steering == meta["params"]["steering"] == "local_linear"
     np.testing.assert_array_equal(g.query(Q)[1], a)
-    # switched back, the model answers as the mean does
+    # switched back, the model answers as the mean does; saved so, its file has no
+    # steering key (the file of before the option) and loads as the mean
     np.testing.assert_array_equal(g.set_steering("mean").query(Q)[1], mean)
+    g.save(tmp_path / "g.npz")
+    h, meta = LearnedFunctions.load(tmp_path / "g.npz")
+    assert "steering" not in meta["params"] and h.steering == "mean"
+    np.testing.assert_array_equal(h.query(Q)[1], mean)
     with pytest.raises(ValueError, match="steering"):
         LearnedFunctions(steering="median").fit(data, system)

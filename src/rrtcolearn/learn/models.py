@@ -30,8 +30,10 @@ FUNCTIONS_FORMAT = "rrtcolearn.learned-functions"
 #: version 1, from before the features: it was fitted on the raw queries, which is what its
 #: missing ``data.invariant`` (none) gives, so it loads and answers as it did.
 FUNCTIONS_VERSION = 2
-#: U's predictors from the neighbours: their mean (the paper's) or a local linear fit
-STEERING_MODES = ("mean", "local_linear")
+#: U's predictors from the neighbours: their mean (the paper's), a local linear fit, or
+#: "neighbours": U is the mean, and the planner spreads its draws over the neighbours' own
+#: parameters (`LearnedFunctions.steering_centres`)
+STEERING_MODES = ("mean", "local_linear", "neighbours")
 #: neighbours of U's local linear fit per feature, and its ridge (relative to the mean
 #: squared distance of the neighbours): measured, docs/predictors.md
 LOCAL_PER_FEATURE = 4
@@ -287,7 +289,7 @@ class _NeighbourAnswers:
         return self.cost_to_go.predict_from_neighbours(dist, idx)
 
     def steer(self, X: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        if self.mode == "mean":
+        if self.mode != "local_linear":
             return self.steering.predict_from_neighbours(None, idx)
         Xs = X * self.scale
         _, near = self.steering.index_.query(Xs, self.local)
@@ -320,7 +322,10 @@ class LearnedFunctions:
     With ``learner = "mlp"``, J and U come from neural networks on the query instead of
     the neighbours' averages; V, and so which queries are answered at all, stays the k-NN
     classifier. ``periodic``: angle coordinates wrap in the distance (rows near the seam
-    are indexed one turn over too). ``seed`` seeds the networks' training.
+    are indexed one turn over too). ``seed`` seeds the networks' training. ``steering``:
+    U's k-NN predictor (`STEERING_MODES`): the neighbours' mean (the paper's, the default:
+    no other one planned better, docs/predictors.md), a local linear fit, or the mean with
+    the planner's draws centred on the neighbours' own parameters.
 
     Every learner sees a query (x0, x1) through the system's `QueryFeatures`: along its
     invariant coordinates (`System.invariant_coordinates`) the difference x1_i - x0_i, so
@@ -451,7 +456,11 @@ class LearnedFunctions:
                   "validity_threshold": self.validity_threshold, "learner": self.learner,
                   "periodic": self.periodic, "mlp_hidden": list(self.mlp_hidden),
                   "mlp_max_iter": self.mlp_max_iter, "mlp_max_samples": self.mlp_max_samples,
-                  "seed": self.seed, "steering": self.steering}
+                  "seed": self.seed}
+        if self.steering != "mean":
+            # only then: a file of the paper's predictor is what it was before the option
+            # (an older rrtcolearn refuses one with it, as a file it cannot read)
+            params["steering"] = self.steering
         return save_arrays(path, FUNCTIONS_FORMAT, arrays, {**(meta or {}), "params": params,
                                                             "version": FUNCTIONS_VERSION})
 
@@ -494,6 +503,16 @@ class LearnedFunctions:
         """U (Q, k+1) for queries X (Q, 2n) whose neighbour indices (Q, m) `query_valid`
         returned."""
         return self._answers.steer(self.features_.transform(X), neighbours)
+
+    def steering_centres(self, X: np.ndarray, neighbours: np.ndarray | None) -> np.ndarray:
+        """Where the planner centres its steering draws for one query X (1, 2n) with its
+        neighbour indices (1, m): U (1, k+1), or with ``steering`` "neighbours" (and k-NN
+        answers) the m neighbours' own parameters and durations (m, k+1), nearest first:
+        an average of extremals that differ may steer nowhere (docs/predictors.md)."""
+        if self.steering == "neighbours" and neighbours is not None \
+                and self.networks_ is None:
+            return self.steering_.targets_[np.asarray(neighbours[0], dtype=np.int64)]
+        return self.steer(X, neighbours)
 
     def query(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(J (Q,), U (Q, k+1), valid (Q,)) for queries X (Q, 2n)."""
