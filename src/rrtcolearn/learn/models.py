@@ -30,10 +30,8 @@ FUNCTIONS_FORMAT = "rrtcolearn.learned-functions"
 #: version 1, from before the features: it was fitted on the raw queries, which is what its
 #: missing ``data.invariant`` (none) gives, so it loads and answers as it did.
 FUNCTIONS_VERSION = 2
-#: U's predictors from the neighbours: their mean (the paper's), a local linear fit, or
-#: "neighbours": U is the mean, and the planner spreads its draws over the neighbours' own
-#: parameters (`LearnedFunctions.steering_centres`)
-STEERING_MODES = ("mean", "local_linear", "neighbours")
+#: U's predictors from the neighbours: their mean (the paper's) or a local linear fit
+STEERING_MODES = ("mean", "local_linear")
 #: neighbours of U's local linear fit per feature, and its ridge (relative to the mean
 #: squared distance of the neighbours): measured, docs/predictors.md
 LOCAL_PER_FEATURE = 4
@@ -289,7 +287,7 @@ class _NeighbourAnswers:
         return self.cost_to_go.predict_from_neighbours(dist, idx)
 
     def steer(self, X: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        if self.mode != "local_linear":
+        if self.mode == "mean":
             return self.steering.predict_from_neighbours(None, idx)
         Xs = X * self.scale
         _, near = self.steering.index_.query(Xs, self.local)
@@ -324,8 +322,8 @@ class LearnedFunctions:
     classifier. ``periodic``: angle coordinates wrap in the distance (rows near the seam
     are indexed one turn over too). ``seed`` seeds the networks' training. ``steering``:
     U's k-NN predictor (`STEERING_MODES`): the neighbours' mean (the paper's, the default:
-    no other one planned better, docs/predictors.md), a local linear fit, or the mean with
-    the planner's draws centred on the neighbours' own parameters.
+    no other one planned better, docs/predictors.md) or a local linear fit (it lands best
+    on pairs that lie on extremals; kept for measurements, `set_steering`).
 
     Every learner sees a query (x0, x1) through the system's `QueryFeatures`: along its
     invariant coordinates (`System.invariant_coordinates`) the difference x1_i - x0_i, so
@@ -503,16 +501,6 @@ class LearnedFunctions:
         """U (Q, k+1) for queries X (Q, 2n) whose neighbour indices (Q, m) `query_valid`
         returned."""
         return self._answers.steer(self.features_.transform(X), neighbours)
-
-    def steering_centres(self, X: np.ndarray, neighbours: np.ndarray | None) -> np.ndarray:
-        """Where the planner centres its steering draws for one query X (1, 2n) with its
-        neighbour indices (1, m): U (1, k+1), or with ``steering`` "neighbours" (and k-NN
-        answers) the m neighbours' own parameters and durations (m, k+1), nearest first:
-        an average of extremals that differ may steer nowhere (docs/predictors.md)."""
-        if self.steering == "neighbours" and neighbours is not None \
-                and self.networks_ is None:
-            return self.steering_.targets_[np.asarray(neighbours[0], dtype=np.int64)]
-        return self.steer(X, neighbours)
 
     def query(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(J (Q,), U (Q, k+1), valid (Q,)) for queries X (Q, 2n)."""

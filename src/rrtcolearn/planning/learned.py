@@ -223,15 +223,11 @@ class LearnedSteering:
 
     def _draws(self, rng, x0: np.ndarray, prediction: np.ndarray, sigma: float, count: int
                ) -> tuple[np.ndarray, np.ndarray]:
-        """Up to ``count`` steering draws around ``prediction`` (k+1,), or around the rows of
-        ``prediction`` (c, k+1) in turn, that have a costate, drawn in blocks (parameters
-        and costates vectorised): (parameters (c, k+1), costates (c, n))."""
+        """Up to ``count`` steering draws around ``prediction`` that have a costate, drawn in
+        blocks (parameters and costates vectorised): (parameters (c, k+1), costates (c, n))."""
         sys, s = self.problem.system, self.settings
         lo, hi = self._bounds
-        # one centre (k+1,) for every draw, or centres (c, k+1) taken in turn
-        mean = np.broadcast_to(prediction[: lo.size], (2 * count, lo.size)) \
-            if prediction.ndim == 1 else \
-            prediction[np.arange(2 * count) % len(prediction), : lo.size]
+        mean = np.broadcast_to(prediction[: lo.size], (2 * count, lo.size))
         a, b = ndtr((lo - mean) / sigma), ndtr((hi - mean) / sigma)
         kept_p, kept_l, have = [], [], 0
         for _ in range(s.max_resample):
@@ -305,22 +301,17 @@ class LearnedSteering:
             self.propagator.rejected = "invalid_query"
             return none
         parent = int(near[row])
-        # one centre (U) or several (the neighbours' parameters): draw j around centre j
-        # modulo their number; one draw takes U
-        centres = self.model.steering_centres(
-            query[row : row + 1], None if neighbours is None else neighbours[None]) \
-            if s.control_samples > 1 else \
-            self.model.steer(query[row : row + 1],
-                             None if neighbours is None else neighbours[None])
+        prediction = self.model.steer(query[row : row + 1],
+                                      None if neighbours is None else neighbours[None])[0]
         x0 = states[parent]
         aim = aims[row] if aim_images else target
         sigma = s.sigma_goal if to_goal else s.sigma
         if s.control_samples > 1 and not self._circular.any():
-            draws = self._draws(rng, x0, centres, sigma, s.control_samples)
+            draws = self._draws(rng, x0, prediction, sigma, s.control_samples)
             return parent, self.propagator.extremal_edges(x0, *draws, aim, weight), aim
         # one draw at a time (the paper's planner)
-        cands = (self._edge(rng, x0, centres[j % len(centres)], sigma, lam, z0)
-                 for j in range(s.control_samples))
+        cands = (self._edge(rng, x0, prediction, sigma, lam, z0)
+                 for _ in range(s.control_samples))
         edge, best_d2 = None, np.inf
         for cand in cands:
             if cand is None:
