@@ -15,7 +15,8 @@ extremal from x0 (`evaluate.landing_states`), the shares landing within half the
 (`learned.LAND_FRACTION` of the plan's goal tolerance), the share a 6-iteration Newton
 refinement from the prediction lands within that tolerance (`shooting.shoot`), and the
 median parameter error (held-out rows; circular parameters on the circle, duration left
-out), and the predictor's CPU per query.
+out), and the predictor's CPU per query; per set, the median of V's statistic (the summed
+distance to the m nearest inputs) against its threshold.
 
     python bench/steering_predictors.py --models /tmp/i31c_models \
         [--cases pendulum_auto,sparse_rrt_cartpole,acrobot,cartpole,quadrotor] \
@@ -222,6 +223,13 @@ def run_case(name: str, models: Path, n_queries: int, with_mlp: bool) -> list[di
     sets["planner pairs"] = (Xp[np.flatnonzero(ok)[:n_queries]], None)
     rows = []
     for set_name, (X, true) in sets.items():
+        # how near the data each set's pairs are: V's statistic (the summed distance to the
+        # m nearest, weighted) against its threshold
+        dist, _ = fn.cost_to_go_.index_.query(fn.features_.transform(X) * fn.input_scale_,
+                                              fn.n_neighbors)
+        print(f"{name} ({set_name}): median summed distance to the {fn.n_neighbors} nearest "
+              f"{np.median(dist.sum(axis=1)):.2f}, V's threshold "
+              f"{fn.validity_.threshold:.2f}", flush=True)
         for pname, (pred, cpu) in predictors(fn, X, system, tw, dt, mlp).items():
             pred = _finish(fn, pred, dt, max_duration)
             r = measure(system, X, pred, true, time_weight=tw, dt=dt,
