@@ -376,3 +376,13 @@ def test_local_linear_steering_is_deterministic_and_survives_save_load(tmp_path)
     np.testing.assert_array_equal(h.query(Q)[1], mean)
     with pytest.raises(ValueError, match="steering"):
         LearnedFunctions(steering="median").fit(data, system)
+    # a file naming a predictor this rrtcolearn does not have is refused, not guessed at
+    from rrtcolearn.data.store import load_arrays, save_arrays
+    from rrtcolearn.errors import ArtefactError
+    from rrtcolearn.learn.models import FUNCTIONS_FORMAT
+
+    arrays, header = load_arrays(tmp_path / "f.npz", FUNCTIONS_FORMAT)
+    header["params"]["steering"] = "median"
+    save_arrays(tmp_path / "bad.npz", FUNCTIONS_FORMAT, arrays, header)
+    with pytest.raises(ArtefactError, match="median"):
+        LearnedFunctions.load(tmp_path / "bad.npz")

@@ -481,6 +481,8 @@ class LearnedFunctions:
             params["cost_bounds"] = tuple(params["cost_bounds"])
             params["mlp_hidden"] = tuple(params["mlp_hidden"])
             model = cls(**params)
+            if model.steering not in STEERING_MODES:
+                raise ValueError(f"steering {model.steering!r} is none of {STEERING_MODES}")
             model.training_ = {k[5:]: v for k, v in arrays.items() if k.startswith("data.")}
             model._fit_neighbours(arrays.get("index.rows"))  # (files before it: built)
             model.networks_ = None
