@@ -75,7 +75,7 @@ def functions_for(model, run_dir: Path, steering: str):
 
 
 def run(problem: str, models: Path, seeds: int, refine: int,
-        steerings: tuple[str, ...] = ("mean",)) -> list[dict]:
+        steerings: tuple[str, ...] = ("mean",), iterations: int | None = None) -> list[dict]:
     """Rows for ``problem``: per U predictor (``steerings``, `functions_for`) refinement off
     and on, each over ``seeds`` seeds."""
     from rrtcolearn import pipeline
@@ -92,7 +92,9 @@ def run(problem: str, models: Path, seeds: int, refine: int,
     prob = pipeline.make_problem(model.system, cfg, start, goal, tol)
     base = model.planner_settings(cfg)
     rows = []
-    for steering, k in product(steerings, (0, refine)):
+    if iterations:
+        budget = iterations
+    for steering, k in product(steerings, (0, refine) if refine else (0,)):
         functions = functions_for(model, models / case_name, steering)
         planner = RRTCoLearn(prob, functions, replace(base, refine_iterations=k))
         planner.solve(TerminationCondition(None, 50), 10_000)  # warm the kernels
@@ -123,7 +125,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models", type=Path, default=Path("/tmp/landing_models"))
     ap.add_argument("--seeds", type=int, default=10)
-    ap.add_argument("--refine", type=int, default=6, help="Newton iterations when on")
+    ap.add_argument("--refine", type=int, default=6,
+                    help="Newton iterations when on (0: refinement off only)")
+    ap.add_argument("--iterations", type=int, default=None,
+                    help="iteration budget of every problem (default: each problem's own)")
     ap.add_argument("--problems", default="pendulum,pendulum_u1,sparse_rrt_cartpole,acrobot",
                     help=f"comma-separated, of {','.join(PROBLEMS)}")
     ap.add_argument("--steering", default="mean",
@@ -132,7 +137,8 @@ def main() -> None:
     args.models.mkdir(parents=True, exist_ok=True)
     rows = [r for p in args.problems.split(",") for r in run(p, args.models, args.seeds,
                                                              args.refine,
-                                                             tuple(args.steering.split(",")))]
+                                                             tuple(args.steering.split(",")),
+                                                             args.iterations)]
     print("\n| problem | U | refine | solved | CPU median (s) | learned share of duration "
           "| path cost | landing error | edges on aim | refined / landed |")
     print("|---|---|---|---|---|---|---|---|---|---|")

@@ -386,3 +386,20 @@ def test_local_linear_steering_is_deterministic_and_survives_save_load(tmp_path)
     save_arrays(tmp_path / "bad.npz", FUNCTIONS_FORMAT, arrays, header)
     with pytest.raises(ArtefactError, match="median"):
         LearnedFunctions.load(tmp_path / "bad.npz")
+
+
+def test_the_learn_section_chooses_the_steering_predictor(small_dataset, pendulum):
+    from rrtcolearn.config import load_config
+    from rrtcolearn.errors import ConfigError
+    from rrtcolearn.pipeline import fit_functions
+
+    base = fit_functions(pendulum, small_dataset, load_config(overrides=[
+        "learn.validity_threshold=0.8", 'learn.learner="knn"']))
+    local = fit_functions(pendulum, small_dataset, load_config(overrides=[
+        "learn.validity_threshold=0.8", 'learn.learner="knn"', 'learn.steering="local_linear"']))
+    assert base.steering == "mean" and local.steering == "local_linear"
+    Q = small_dataset.inputs[:40]
+    np.testing.assert_array_equal(base.query(Q)[0], local.query(Q)[0])  # J is the same
+    assert not np.array_equal(base.query(Q)[1], local.query(Q)[1])
+    with pytest.raises(ConfigError):
+        load_config(overrides=['learn.steering="median"'])

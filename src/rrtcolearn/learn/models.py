@@ -321,9 +321,9 @@ class LearnedFunctions:
     the neighbours' averages; V, and so which queries are answered at all, stays the k-NN
     classifier. ``periodic``: angle coordinates wrap in the distance (rows near the seam
     are indexed one turn over too). ``seed`` seeds the networks' training. ``steering``:
-    U's k-NN predictor (`STEERING_MODES`): the neighbours' mean (the paper's, the default:
-    no other one planned better, docs/predictors.md) or a local linear fit (it lands best
-    on pairs that lie on extremals; kept for measurements, `set_steering`).
+    U's k-NN predictor (`STEERING_MODES`, ``learn.steering``): the neighbours' mean (the
+    paper's, the default) or a local linear fit (better on some systems, worse on others:
+    docs/predictors.md).
 
     Every learner sees a query (x0, x1) through the system's `QueryFeatures`: along its
     invariant coordinates (`System.invariant_coordinates`) the difference x1_i - x0_i, so
