@@ -289,3 +289,117 @@ def test_best_valid_network_branch_is_the_brute_force_argmin():
         assert valid[row] and J[row] <= J[want] * (1 + 1e-12), (row, want)
         assert row == want or abs(J[row] - J[want]) <= 1e-12 * J[want]
     assert found >= 50
+
+
+def _ridge_reference(P: np.ndarray, Y: np.ndarray, q: np.ndarray, ridge: float) -> np.ndarray:
+    """Intercept of the ridge fit of Y on P - q, by least squares on the augmented system
+    [1, P - q; 0, sqrt(r) I] b = [Y; 0] (numpy's lstsq, written here independently)."""
+    D = P - q
+    K, d = D.shape
+    r = ridge * float(np.sum(D**2)) / K
+    A = np.vstack([np.hstack([np.ones((K, 1)), D]),
+                   np.hstack([np.zeros((d, 1)), np.sqrt(r) * np.eye(d)])])
+    B = np.vstack([Y, np.zeros((d, Y.shape[1]))])
+    return np.linalg.lstsq(A, B, rcond=None)[0][0]
+
+
+def test_local_linear_steering_is_the_brute_force_ridge_fit():
+    rng = np.random.default_rng(3)
+    P = rng.normal(size=(200, 4))
+    lo, hi = -np.pi, np.pi
+    # a circular column near its branch cut and a smooth non-circular one plus duration
+    phi = np.mod(3.0 + 0.4 * P[:, 0] - 0.2 * P[:, 2] + 0.05 * rng.normal(size=200) - lo,
+                 hi - lo) + lo
+    y = np.stack([phi, 1.0 + P[:, 1] + 0.3 * P[:, 3] ** 2, 2.0 + 0.1 * P[:, 0]], axis=1)
+    model = SteeringRegressor(3, circular=(True, False), low=(lo, 0.0),
+                              high=(hi, 10.0)).fit(P, y)
+    Q = rng.normal(size=(25, 4)) * 0.8
+    K, ridge = 16, 0.05
+    _, idx = model.index_.query(Q, K)
+    got = model.predict_local(Q, idx, ridge, clip=False)
+    for r in range(len(Q)):
+        Y = y[idx[r]].copy()
+        # unwrap the angle around the nearest neighbour's, fit, wrap back
+        Y[:, 0] = Y[0, 0] + np.angle(np.exp(1j * (Y[:, 0] - Y[0, 0])))
+        want = _ridge_reference(P[idx[r]], Y, Q[r], ridge)
+        want[0] = lo + np.mod(want[0] - lo, hi - lo)
+        assert abs(np.angle(np.exp(1j * (got[r, 0] - want[0])))) < 1e-9
+        np.testing.assert_allclose(got[r, 1:], want[1:], rtol=1e-9, atol=1e-9)
+    # clipped: within the range the neighbours span, and the unclipped value where inside
+    clipped = model.predict_local(Q, idx, ridge)
+    span = y[idx][:, :, 1:]
+    inside = (got[:, 1:] >= span.min(axis=1)) & (got[:, 1:] <= span.max(axis=1))
+    assert np.all(clipped[:, 1:] >= span.min(axis=1)) and np.all(
+        clipped[:, 1:] <= span.max(axis=1))
+    np.testing.assert_array_equal(clipped[:, 1:][inside], got[:, 1:][inside])
+    assert inside.any()
+
+
+def test_local_linear_steering_is_exact_on_an_affine_map():
+    """First-order exactness: without the ridge an affine map of the features is
+    reproduced at any query inside the neighbours' range, where the mean is off."""
+    rng = np.random.default_rng(4)
+    P = rng.uniform(-1, 1, size=(300, 3))
+    y = np.stack([0.5 + P @ [1.0, -2.0, 0.5], 3.0 + P @ [0.2, 0.1, -0.4]], axis=1)
+    model = SteeringRegressor(3).fit(P, y)
+    Q = rng.uniform(-0.5, 0.5, size=(20, 3))
+    _, idx = model.index_.query(Q, 12)
+    want = np.stack([0.5 + Q @ [1.0, -2.0, 0.5], 3.0 + Q @ [0.2, 0.1, -0.4]], axis=1)
+    np.testing.assert_allclose(model.predict_local(Q, idx, 0.0), want, atol=1e-10)
+    assert np.abs(model.predict(Q) - want).max() > 1e-3
+
+
+def test_local_linear_steering_is_deterministic_and_survives_save_load(tmp_path):
+    from rrtcolearn.data.generate import generate_data
+    from rrtcolearn.systems import make
+
+    system = make("pendulum")
+    data, _ = generate_data(system, 5, 400, max_cost=2.0, max_state_distance=1.5)
+    f = LearnedFunctions(validity_threshold=0.8, steering="local_linear").fit(data, system)
+    Q = np.hstack([data.x0[:60], data.x1[::-1][:60]])
+    a = f.query(Q)[1]
+    b = LearnedFunctions(validity_threshold=0.8, steering="local_linear").fit(
+        data, system).query(Q)[1]
+    np.testing.assert_array_equal(a, b)
+    mean = LearnedFunctions(validity_threshold=0.8).fit(data, system).query(Q)[1]
+    assert not np.array_equal(a, mean)
+    f.save(tmp_path / "f.npz")
+    g, meta = LearnedFunctions.load(tmp_path / "f.npz")
+    assert g.steering == meta["params"]["steering"] == "local_linear"
+    np.testing.assert_array_equal(g.query(Q)[1], a)
+    # switched back, the model answers as the mean does; saved so, its file has no
+    # steering key (the file of before the option) and loads as the mean
+    np.testing.assert_array_equal(g.set_steering("mean").query(Q)[1], mean)
+    g.save(tmp_path / "g.npz")
+    h, meta = LearnedFunctions.load(tmp_path / "g.npz")
+    assert "steering" not in meta["params"] and h.steering == "mean"
+    np.testing.assert_array_equal(h.query(Q)[1], mean)
+    with pytest.raises(ValueError, match="steering"):
+        LearnedFunctions(steering="median").fit(data, system)
+    # a file naming a predictor this rrtcolearn does not have is refused, not guessed at
+    from rrtcolearn.data.store import load_arrays, save_arrays
+    from rrtcolearn.errors import ArtefactError
+    from rrtcolearn.learn.models import FUNCTIONS_FORMAT
+
+    arrays, header = load_arrays(tmp_path / "f.npz", FUNCTIONS_FORMAT)
+    header["params"]["steering"] = "median"
+    save_arrays(tmp_path / "bad.npz", FUNCTIONS_FORMAT, arrays, header)
+    with pytest.raises(ArtefactError, match="median"):
+        LearnedFunctions.load(tmp_path / "bad.npz")
+
+
+def test_the_learn_section_chooses_the_steering_predictor(small_dataset, pendulum):
+    from rrtcolearn.config import load_config
+    from rrtcolearn.errors import ConfigError
+    from rrtcolearn.pipeline import fit_functions
+
+    base = fit_functions(pendulum, small_dataset, load_config(overrides=[
+        "learn.validity_threshold=0.8", 'learn.learner="knn"']))
+    local = fit_functions(pendulum, small_dataset, load_config(overrides=[
+        "learn.validity_threshold=0.8", 'learn.learner="knn"', 'learn.steering="local_linear"']))
+    assert base.steering == "mean" and local.steering == "local_linear"
+    Q = small_dataset.inputs[:40]
+    np.testing.assert_array_equal(base.query(Q)[0], local.query(Q)[0])  # J is the same
+    assert not np.array_equal(base.query(Q)[1], local.query(Q)[1])
+    with pytest.raises(ConfigError):
+        load_config(overrides=['learn.steering="median"'])

@@ -176,6 +176,10 @@ class LearnConfig(_Section):
         None, description="J and U from k-NN (the paper) or from a neural network (V stays "
         "k-NN); mlp needs the optional scikit-learn dependency; none: k-NN up to two "
         "states, mlp above")
+    steering: Literal["mean", "local_linear"] = Field(
+        "mean", description="U from the k-NN: the m neighbours' mean (the paper) or a local "
+        "linear fit over 4 neighbours per feature (better on the shipped cart-pole and the "
+        "acrobot, worse on sparse_rrt's cart-pole and the pendulum: docs/predictors.md)")
     mlp_hidden: list[int] = Field([64, 64, 64], min_length=1, max_length=8,
                                   description="hidden layer widths of the mlp learner")
     mlp_max_iter: int = Field(200, ge=1, le=10_000, description="training epochs at most")

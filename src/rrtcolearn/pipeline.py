@@ -462,7 +462,8 @@ def fit_functions(system: System, data: Dataset, config: Config) -> LearnedFunct
         validity_threshold=learn.validity_threshold, learner=learn.learner,
         periodic=learn.periodic, mlp_hidden=tuple(learn.mlp_hidden),
         mlp_max_iter=learn.mlp_max_iter, mlp_max_samples=learn.mlp_max_samples,
-        seed=int(np.random.SeedSequence(config.seed).generate_state(1)[0] >> 1))
+        seed=int(np.random.SeedSequence(config.seed).generate_state(1)[0] >> 1),
+        steering=learn.steering)
     try:
         return functions.fit(data, system)
     except ImportError as exc:

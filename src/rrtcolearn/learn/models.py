@@ -32,6 +32,12 @@ FUNCTIONS_FORMAT = "rrtcolearn.learned-functions"
 #: rotation (``data.rotation``: i, j, k and whether the heading wraps; none before 3) puts the
 #: queries in x0's body frame and U's targets with them (`QueryFeatures`).
 FUNCTIONS_VERSION = 3
+#: U's predictors from the neighbours: their mean (the paper's) or a local linear fit
+STEERING_MODES = ("mean", "local_linear")
+#: neighbours of U's local linear fit per feature, and its ridge (relative to the mean
+#: squared distance of the neighbours): measured, docs/predictors.md
+LOCAL_PER_FEATURE = 4
+LOCAL_RIDGE = 0.01
 
 
 class _KNNBase:
@@ -92,6 +98,31 @@ def _mean_steer(targets, cos_, sin_, idx):
                 ss += sin_[idx[r, t], j]
             cos_mean[r, j], sin_mean[r, j] = sc / m, ss / m
     return out, cos_mean, sin_mean
+
+
+def _local_linear(points, targets, circular, period, query, idx, ridge):
+    """U at each query row as a ridge-regularised affine fit of its neighbours' targets on
+    their features: for query q (scaled features, (d,)) and neighbours P (K, d) with
+    targets Y (K, t), the intercept a of min |a + (P - q) B - Y|^2 + r |B|^2 with
+    r = ``ridge`` * mean |P - q|^2, so the penalty scales with the neighbourhood. Circular
+    columns are unwrapped around the nearest neighbour's value first (a line through angles
+    must not jump a branch cut); the caller wraps them back."""
+    q, K = idx.shape
+    d = points.shape[1]
+    out = np.empty((q, targets.shape[1]))
+    A = np.empty((K, d + 1))
+    A[:, 0] = 1.0
+    reg = np.zeros(d + 1)
+    for r in range(q):
+        A[:, 1:] = points[idx[r]] - query[r]
+        Y = targets[idx[r]].copy()
+        if circular.any():
+            ref = Y[0, circular]
+            p = period[circular]
+            Y[:, circular] = ref + np.mod(Y[:, circular] - ref + p / 2.0, p) - p / 2.0
+        reg[1:] = ridge * float(np.sum(A[:, 1:] ** 2)) / K
+        out[r] = np.linalg.solve(A.T @ A + np.diag(reg), A.T @ Y)[0]
+    return out
 
 
 @numba.njit(cache=True)
@@ -174,6 +205,28 @@ class SteeringRegressor(_KNNBase):
             out[:, c] = np.where(val >= self.low_[c] + self.period_[c], self.low_[c], val)
         return out
 
+    def predict_local(self, query: np.ndarray, idx: np.ndarray, ridge: float,
+                      clip: bool = True) -> np.ndarray:
+        """U at ``query`` (Q, d), scaled features as indexed, from a local linear regression
+        over its neighbours ``idx`` (Q, K) (`_local_linear`): circular parameters wrapped
+        into their range, the others and the duration clipped to the range the neighbours
+        span (the fit must not extrapolate beyond what its data did: measured,
+        docs/predictors.md)."""
+        idx = np.ascontiguousarray(idx, dtype=np.int64)
+        points = self.index_.points
+        out = _local_linear(points, self.targets_, self.circular_, self.period_, query, idx,
+                            ridge)
+        c = self.circular_
+        Y = self.targets_[idx]  # (Q, K, t)
+        if clip:
+            out[:, ~c] = np.clip(out[:, ~c], Y[:, :, ~c].min(axis=1),
+                                 Y[:, :, ~c].max(axis=1))
+        if c.any():
+            low, period = self.low_[c], self.period_[c]
+            val = low + np.mod(out[:, c] - low, period)
+            out[:, c] = np.where(val >= low + period, low, val)
+        return out
+
 
 class ValidityClassifier(_KNNBase):
     """V(x0, x1): true when the summed distance to the m nearest inputs is <= ``threshold``.
@@ -226,16 +279,24 @@ class ValidityClassifier(_KNNBase):
 
 
 class _NeighbourAnswers:
-    """J and U as the neighbours' averages (the paper)."""
+    """J as the neighbours' average (the paper); U as their average too (``steering``
+    "mean") or as a local linear regression over ``local`` neighbours ("local_linear")."""
 
-    def __init__(self, cost_to_go: CostToGoRegressor, steering: SteeringRegressor):
+    def __init__(self, cost_to_go: CostToGoRegressor, steering: SteeringRegressor,
+                 mode: str = "mean", local: int = 0, ridge: float = 0.0,
+                 scale: np.ndarray | None = None):
         self.cost_to_go, self.steering = cost_to_go, steering
+        self.mode, self.local, self.ridge, self.scale = mode, local, ridge, scale
 
     def cost(self, X: np.ndarray, dist: np.ndarray, idx: np.ndarray) -> np.ndarray:
         return self.cost_to_go.predict_from_neighbours(dist, idx)
 
     def steer(self, X: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        return self.steering.predict_from_neighbours(None, idx)
+        if self.mode == "mean":
+            return self.steering.predict_from_neighbours(None, idx)
+        Xs = X * self.scale
+        _, near = self.steering.index_.query(Xs, self.local)
+        return self.steering.predict_local(Xs, near, self.ridge)
 
 
 class _NetworkAnswers:
@@ -264,7 +325,10 @@ class LearnedFunctions:
     With ``learner = "mlp"``, J and U come from neural networks on the query instead of
     the neighbours' averages; V, and so which queries are answered at all, stays the k-NN
     classifier. ``periodic``: angle coordinates wrap in the distance (rows near the seam
-    are indexed one turn over too). ``seed`` seeds the networks' training.
+    are indexed one turn over too). ``seed`` seeds the networks' training. ``steering``:
+    U's k-NN predictor (`STEERING_MODES`, ``learn.steering``): the neighbours' mean (the
+    paper's, the default) or a local linear fit (better on some systems, worse on others:
+    docs/predictors.md).
 
     Every learner sees a query (x0, x1) through the system's `QueryFeatures`: along its
     invariant coordinates (`System.invariant_coordinates`) the difference x1_i - x0_i, so
@@ -275,8 +339,10 @@ class LearnedFunctions:
                  cost_bounds: tuple[float, float] = (1e-5, 1e5),
                  validity_threshold: float = 0.3, learner: str = "knn", periodic: bool = True,
                  mlp_hidden: tuple[int, ...] = (64, 64, 64), mlp_max_iter: int = 200,
-                 mlp_max_samples: int | None = 100_000, seed: int = 0):
+                 mlp_max_samples: int | None = 100_000, seed: int = 0,
+                 steering: str = "mean"):
         self.n_neighbors = n_neighbors
+        self.steering = steering
         self.cost_bounds = cost_bounds
         self.validity_threshold = validity_threshold
         self.learner = learner
@@ -291,6 +357,9 @@ class LearnedFunctions:
         system's metric weights, angle coordinates and steering-parameter ranges."""
         if self.learner not in ("knn", "mlp"):
             raise ValueError(f"learner must be 'knn' or 'mlp', got {self.learner!r}")
+        if self.steering not in STEERING_MODES:
+            raise ValueError(f"steering must be one of {STEERING_MODES}, got "
+                             f"{self.steering!r}")
         features, periodic = learning_geometry(system, self.periodic)
         self.training_ = {
             "inputs": np.asarray(data.inputs, dtype=np.float64),
@@ -308,9 +377,27 @@ class LearnedFunctions:
         self.networks_ = None
         if self.learner == "mlp":
             self.networks_ = self._fit_networks()
-        self._answers = _NeighbourAnswers(self.cost_to_go_, self.steering_) \
+        self._answers = self._neighbour_answers() \
             if self.networks_ is None else _NetworkAnswers(self.networks_, self.cost_bounds)
         return self
+
+    def set_steering(self, steering: str) -> LearnedFunctions:
+        """This model with U's k-NN predictor switched to ``steering`` (`STEERING_MODES`;
+        the data and the index stay): for side-by-side measurements. Returns self."""
+        if steering not in STEERING_MODES:
+            raise ValueError(f"steering must be one of {STEERING_MODES}, got {steering!r}")
+        self.steering = steering
+        if self.networks_ is None:
+            self._answers = self._neighbour_answers()
+        return self
+
+    def _neighbour_answers(self) -> _NeighbourAnswers:
+        """The k-NN answers with this model's steering predictor: the local linear fit over
+        `LOCAL_PER_FEATURE` neighbours per feature (a fit of 2n - k + 1 coefficients needs
+        several times that many rows), at most every indexed point."""
+        local = min(LOCAL_PER_FEATURE * self.features_.width, len(self.steering_.targets_))
+        return _NeighbourAnswers(self.cost_to_go_, self.steering_, self.steering, local,
+                                 LOCAL_RIDGE, self.input_scale_)
 
     def _fit_neighbours(self, rows: np.ndarray | None = None) -> None:
         """The neighbour index and the k-NN functions on it; ``rows``: the index's saved
@@ -427,6 +514,10 @@ class LearnedFunctions:
                   "periodic": self.periodic, "mlp_hidden": list(self.mlp_hidden),
                   "mlp_max_iter": self.mlp_max_iter, "mlp_max_samples": self.mlp_max_samples,
                   "seed": self.seed}
+        if self.steering != "mean":
+            # only then: a file of the paper's predictor is what it was before the option
+            # (an older rrtcolearn refuses one with it, as a file it cannot read)
+            params["steering"] = self.steering
         return save_arrays(path, FUNCTIONS_FORMAT, arrays, {**(meta or {}), "params": params,
                                                             "version": FUNCTIONS_VERSION})
 
@@ -451,6 +542,8 @@ class LearnedFunctions:
             params["cost_bounds"] = tuple(params["cost_bounds"])
             params["mlp_hidden"] = tuple(params["mlp_hidden"])
             model = cls(**params)
+            if model.steering not in STEERING_MODES:
+                raise ValueError(f"steering {model.steering!r} is none of {STEERING_MODES}")
             model.training_ = {k[5:]: v for k, v in arrays.items() if k.startswith("data.")}
             model._fit_neighbours(arrays.get("index.rows"))  # (files before it: built)
             model.networks_ = None
@@ -462,7 +555,7 @@ class LearnedFunctions:
                     for p in "JU")
         except (KeyError, TypeError, ValueError) as exc:
             raise ArtefactError(f"{path} is not a readable model file ({exc})") from None
-        model._answers = _NeighbourAnswers(model.cost_to_go_, model.steering_) \
+        model._answers = model._neighbour_answers() \
             if model.networks_ is None else _NetworkAnswers(model.networks_,
                                                              model.cost_bounds)
         return model, meta
