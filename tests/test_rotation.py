@@ -174,11 +174,14 @@ def _queries(data, rng) -> np.ndarray:
     return X
 
 
-@pytest.mark.parametrize("learner", ["knn", "mlp"])
-def test_rotated_and_shifted_queries_get_the_same_J_and_turned_U(unicycle_data, learner):
+@pytest.mark.parametrize(("learner", "steering"),
+                         [("knn", "mean"), ("knn", "local_linear"), ("mlp", "mean")])
+def test_rotated_and_shifted_queries_get_the_same_J_and_turned_U(unicycle_data, learner,
+                                                                  steering):
     system, data = unicycle_data
-    f = LearnedFunctions(validity_threshold=0.1, learner=learner, mlp_max_iter=3,
-                         mlp_hidden=(16,), mlp_max_samples=5000).fit(data, system)
+    f = LearnedFunctions(validity_threshold=0.1, learner=learner, steering=steering,
+                         mlp_max_iter=3, mlp_hidden=(16,),
+                         mlp_max_samples=5000).fit(data, system)
     assert f.features_.rotation == (0, 1, 2)
     rng = np.random.default_rng(1)
     X = _queries(data, rng)
