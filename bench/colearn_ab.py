@@ -54,6 +54,7 @@ from rrtcolearn.pipeline import (
     query_states,
     resolve,
     seed_stream,
+    simulation_options,
     system_from_config,
 )
 
@@ -67,9 +68,7 @@ def run_system(name: str, n_sims: int, rounds: int, seeds: int, iterations: int,
     system = system_from_config(cfg)
     cfg = resolve(cfg, system)
     g = cfg.generate
-    sim = dict(time_weight=cfg.system.time_weight, dt=g.dt, max_cost=cfg.max_cost,
-               max_state_distance=g.max_state_distance, u_max=cfg.system.truncation_limit,
-               max_duration=g.max_duration)
+    sim = simulation_options(cfg)
     stream = seed_stream(data_seed, "generate")
     c0 = time.process_time()
     base, _ = generate_data(system, stream, n_sims, **sim)

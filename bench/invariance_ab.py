@@ -52,6 +52,7 @@ from rrtcolearn.pipeline import (
     query_states,
     resolve,
     seed_stream,
+    simulation_options,
     system_from_config,
 )
 
@@ -101,9 +102,7 @@ def run_system(name: str, n_sims: int, seeds: int, iterations: int, data_seed: i
     system = system_from_config(cfg)
     cfg = resolve(cfg, system)
     g = cfg.generate
-    options = dict(time_weight=cfg.system.time_weight, dt=g.dt, max_cost=cfg.max_cost,
-                   max_state_distance=g.max_state_distance, chunk_size=g.chunk_size,
-                   u_max=cfg.system.truncation_limit, max_duration=g.max_duration)
+    options = dict(simulation_options(cfg), chunk_size=g.chunk_size)
     c0 = time.process_time()
     data, stats = generate_data(system, seed_stream(data_seed, "generate"), n_sims, **options)
     gen_cpu = time.process_time() - c0 + stats.worker_cpu_s

@@ -46,6 +46,7 @@ from rrtcolearn.pipeline import (
     fit_functions,
     resolve,
     seed_stream,
+    simulation_options,
     system_from_config,
 )
 from rrtcolearn.planning.rrt import RRTCoLearn
@@ -62,9 +63,7 @@ def run(n_sims: int, seeds: int, limit: float, overrides: tuple[str, ...],
     system = system_from_config(cfg)
     cfg = resolve(cfg, system)
     g = cfg.generate
-    options = dict(time_weight=cfg.system.time_weight, dt=g.dt, max_cost=cfg.max_cost,
-                   max_state_distance=g.max_state_distance, chunk_size=g.chunk_size,
-                   u_max=cfg.system.truncation_limit, max_duration=g.max_duration)
+    options = dict(simulation_options(cfg), chunk_size=g.chunk_size)
     data, _ = generate_data(system, seed_stream(data_seed, "generate"), n_sims, **options)
     held, _ = generate_data(system, seed_stream(101, "generate"), 2000, **options)
     cleaned, _ = clean_data(data, d=cfg.clean.d, k_max=cfg.clean.k_max,

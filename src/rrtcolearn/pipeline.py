@@ -140,6 +140,16 @@ def resolve(config: Config, system: System | None = None) -> Config:
     return _record(config, choices)
 
 
+def simulation_options(config: Config) -> dict:
+    """The options of Alg. 2's simulations (`data.generate.generate_data`,
+    `generation_tasks`, `simulate_from`) in a resolved ``config``: w, dt, the cost bound, the
+    reach, the truncation limit and the longest duration, named as those functions take them."""
+    g = config.generate
+    return {"time_weight": config.system.time_weight, "dt": g.dt, "max_cost": config.max_cost,
+            "max_state_distance": g.max_state_distance,
+            "u_max": config.system.truncation_limit, "max_duration": g.max_duration}
+
+
 def _with_configured_limits(config: Config, system: System) -> System:
     """``system`` with the configured input limits: saturated optimal control over the input
     box, or (limit_mode 'truncate') the unconstrained system whose extremals are cut at u_max.
@@ -245,9 +255,7 @@ def generate(config: Config, run_dir: str | Path,
     g = config.generate
     tasks = generation_tasks(
         system, seed_stream(config.seed, "generate"), g.n_simulations,
-        time_weight=config.system.time_weight, dt=g.dt, max_cost=config.max_cost,
-        max_state_distance=g.max_state_distance, chunk_size=g.chunk_size,
-        u_max=config.system.truncation_limit, max_duration=g.max_duration,
+        chunk_size=g.chunk_size, **simulation_options(config),
         goal_simulations=g.goal_simulations, goal=_data_goal(config, system))
     shards = ShardStore(run_dir / "shards" / "generate", key, len(tasks))
     parts: list = [shards.load(t.chunk, system.name) for t in tasks]
@@ -306,9 +314,8 @@ def _colearn(config: Config, system: System, data: Dataset, stats: GenerationSta
     out, records = colearn(
         system, data, refit, seed=seed_stream(config.seed, "generate"),
         rounds=g.colearn_rounds, simulations=max(1, g.n_simulations // 10),
-        first_id=g.n_simulations + g.goal_simulations, time_weight=config.system.time_weight,
-        dt=g.dt, max_cost=config.max_cost, max_state_distance=g.max_state_distance,
-        u_max=config.system.truncation_limit, max_duration=g.max_duration, store=store)
+        first_id=g.n_simulations + g.goal_simulations, store=store,
+        **simulation_options(config))
     write_json(run_dir / COLEARN_FILE, [dataclasses.asdict(r) for r in records])
     rates = ", ".join(f"{r.hit_rate:.1%}" for r in records)
     config = _record(config, [derive.Choice(
@@ -342,9 +349,7 @@ def converge_simulations(config: Config, run_dir: str | Path,
     start = derive.n_simulations(system).value // 4
     n = max(g.chunk_size, -(-start // g.chunk_size) * g.chunk_size)
     held, _ = generate_data(system, seed_stream(config.seed, "derive"), 2 * CONVERGENCE_HELD_OUT,
-                            time_weight=config.system.time_weight, dt=g.dt,
-                            max_cost=config.max_cost, max_state_distance=g.max_state_distance,
-                            u_max=config.system.truncation_limit, max_duration=g.max_duration)
+                            **simulation_options(config))
     rows = np.random.default_rng(0).permutation(len(held))[: 20 * CONVERGENCE_HELD_OUT]
     spent, trail, previous = 0.0, [], None
     knn = config.learn.model_copy(update={"learner": "knn"})

@@ -70,6 +70,20 @@ INTERIOR_MISSES = 24
 REATTACH_STRETCH = 2
 
 
+def _recorded(plan: Plan, prop, path: list[int] | None, key: str, record: dict) -> Plan:
+    """``plan`` with ``record`` as ``extra[key]``, and, when an improvement found a new
+    ``path`` (None: none), that path as the plan's, with its goal distance and duration by
+    edge kind."""
+    if path is None:
+        plan.extra[key] = record
+        return plan
+    out = replace(plan, path_nodes=path,
+                  end_goal_distance=prop.end_goal_distance(plan.tree.states[path[-1]]),
+                  extra={**plan.extra, key: record})
+    out.extra["duration_by"] = out.duration_by
+    return out
+
+
 def _costs_to_come(tree: PlannerData, path: list[int]) -> np.ndarray:
     """Cost to come of each node of ``path`` (path order)."""
     return np.concatenate([[0.0], np.cumsum(tree.costs[path[1:]])])
@@ -149,15 +163,8 @@ def goal_shortcuts(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | N
                 added += 1
             best = float(come[pos] + min(costs))
         pos -= 1
-    record = {"added": added, "shots": shots, "lqr_loops": loops}
-    if not added:
-        plan.extra["shortcuts"] = record
-        return plan
-    out = replace(plan, path_nodes=path,
-                  end_goal_distance=prop.end_goal_distance(tree.states[path[-1]]),
-                  extra={**plan.extra, "shortcuts": record})
-    out.extra["duration_by"] = out.duration_by
-    return out
+    return _recorded(plan, prop, path if added else None, "shortcuts",
+                     {"added": added, "shots": shots, "lqr_loops": loops})
 
 
 def _held_edge(propagator: Propagator, x0: np.ndarray, u: np.ndarray, steps: int
@@ -336,14 +343,7 @@ def interior_shortcuts(planner: RRTCoLearn, plan: Plan,
         record["kept"] += 1
         record["goal_tails"] += tail
         best = float(_costs_to_come(tree, path)[-1])
-    if not record["added"]:
-        plan.extra["interior"] = record
-        return plan
-    out = replace(plan, path_nodes=path,
-                  end_goal_distance=prop.end_goal_distance(tree.states[path[-1]]),
-                  extra={**plan.extra, "interior": record})
-    out.extra["duration_by"] = out.duration_by
-    return out
+    return _recorded(plan, prop, path if record["added"] else None, "interior", record)
 
 
 def _shortcut_stretch(planner: RRTCoLearn, tree: PlannerData, path: list[int], a: int, b: int,
