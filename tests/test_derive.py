@@ -114,3 +114,81 @@ def test_offline_budget_chooses_simulations_by_convergence(tmp_path):
     plain = load_config(overrides=[f"generate.n_simulations={n}", "clean.k_max=300"])
     again, _ = pipeline.generate(plain, tmp_path / "plain")
     np.testing.assert_array_equal(again.x1, data.x1)
+
+
+@pytest.fixture(scope="module")
+def fast_integrator():
+    """A double integrator whose velocity moves by 2 per 0.01 s step at the input limit
+    (gain 200, |u| <= 1) across a box of [-8, 8]: an eighth of its range per step, as
+    dynobench's planar quadrotor's yaw rate (2.2 rad/s per step in [-8, 8])."""
+    import sympy
+
+    from rrtcolearn.systems.symbolic import build_system
+
+    p, v, u = sympy.symbols("p v u", real=True)
+    return build_system("fast_integrator", [p, v], [u], drift=[v, 0],
+                        input_matrix=[[0], [200]], input_low=[-1.0], input_high=[1.0],
+                        state_low=[-1.0, -8.0], state_high=[1.0, 8.0])
+
+
+def _points_per_simulation(data) -> np.ndarray:
+    counts = np.bincount(data.simulation)
+    return counts[counts > 0]
+
+
+def test_a_fast_system_gets_multi_step_data(fast_integrator):
+    # the paper's reach (1.5) is left in the second step: one data point per simulation
+    # (issue 32's quad2d); the derived reach keeps the median simulation REACH_STEPS steps
+    cfg = pipeline.resolve(Config(), fast_integrator)
+    reach = cfg.generate.max_state_distance
+    assert reach > derive.PAPER_REACH
+    assert "generate.max_state_distance" in cfg.derived
+    options = {"max_cost": cfg.generate.max_cost, "chunk_size": 500}
+    old, _ = generate_data(fast_integrator, 4, 1000, max_state_distance=1.5, **options)
+    new, _ = generate_data(fast_integrator, 4, 1000, max_state_distance=reach, **options)
+    assert np.median(_points_per_simulation(old)) <= 1
+    assert np.median(_points_per_simulation(new)) >= derive.REACH_STEPS
+
+
+def _rk4_reference(system, z: np.ndarray, w: float, dt: float) -> np.ndarray:
+    """One classic RK4 step of the state+costate ODE, written out here."""
+    def f(y):
+        out = np.empty_like(y)
+        system.rhs(y, w, out)
+        return out
+    k1 = f(z)
+    k2 = f(z + 0.5 * dt * k1)
+    k3 = f(z + 0.5 * dt * k2)
+    k4 = f(z + dt * k3)
+    return z + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+def test_the_reach_rule_against_a_hand_computation(fast_integrator):
+    # the median over the pilot of each simulation's farthest weighted distance from its
+    # start in its first REACH_STEPS steps, recomputed with a hand-written RK4 loop
+    from rrtcolearn.data.generate import sample_starts
+
+    seed = np.random.SeedSequence(11)
+    choice = derive.pilot_reach(fast_integrator, time_weight=1.0, dt=0.01, seed=seed)
+    x0, _, lam, valid = sample_starts(fast_integrator, seed, 0, derive.PILOT_SIMULATIONS, 1.0)
+    scale = 2 * np.pi / np.array([2.0, 16.0])  # a range counts as a turn
+    farthest = []
+    for x, la in zip(x0[valid], lam[valid], strict=True):
+        z = np.concatenate([x, la, [0.0]])
+        far = 0.0
+        for _ in range(derive.REACH_STEPS):
+            z = _rk4_reference(fast_integrator, z, 1.0, 0.01)
+            far = max(far, float(np.linalg.norm((z[:2] - x) * scale)))
+        farthest.append(far)
+    assert choice.key == "generate.max_state_distance"
+    assert choice.value == pytest.approx(float(np.median(farthest)), rel=1e-9)
+    # about REACH_STEPS steps of 2 (the saturated input) in v, weighted 2 pi / 16
+    assert choice.value == pytest.approx(derive.REACH_STEPS * 2 * 2 * np.pi / 16, rel=0.2)
+
+
+def test_slow_systems_keep_the_papers_reach(pendulum):
+    # the pendulum's median pilot simulation stays within 1.5 for 63 steps: the paper's
+    # reach, and so the paper's data, are kept
+    cfg = pipeline.resolve(Config(), pendulum)
+    assert cfg.generate.max_state_distance == derive.PAPER_REACH
+    assert cfg.derived["generate.max_state_distance"].startswith("1.5: the paper's")
