@@ -137,10 +137,8 @@ class GenerateConfig(_Section):
         None, gt=0, description="stop a simulation when its cost exceeds this (none: "
         "derived, the 90% quantile of the cost at which pilot simulations leave the reach "
         "ball; 4.5 for the paper's pendulum, whose bound is 2)")
-    max_state_distance: float | None = Field(
-        None, gt=0, description="... or when |x(t) - x0| (weighted: system.metric_scale) "
-        "exceeds this (none: derived, the paper's 1.5 unless half of the pilot simulations "
-        "leave it within 4 RK4 steps; then the distance that half of them keep within for 4)")
+    max_state_distance: float = Field(1.5, gt=0,
+                                      description="... or when |x(t) - x0| exceeds this")
     max_duration: float = Field(20.0, gt=0, le=1000.0,
                                 description="longest segment (s); bounds memory and time")
     chunk_size: int = Field(2000, ge=1, le=100_000, description="simulations per seeded chunk")
@@ -483,7 +481,7 @@ class Config(_Section):
 # The paper's settings for what the library otherwise derives (rrtcolearn.derive): its
 # pendulum experiment exactly, e.g. to reproduce its figures; `paper_config()`.
 PAPER: dict[str, dict[str, Any]] = {
-    "generate": {"n_simulations": 40_000, "max_cost": 2.0, "max_state_distance": 1.5},
+    "generate": {"n_simulations": 40_000, "max_cost": 2.0},
     "learn": {"validity_threshold": 0.5, "learner": "knn"},
     "plan": {"sigma": math.pi / 4, "sigma_goal": math.pi / 2, "control_samples": 1,
              "extend_distance": 0.0, "goal_connect": False, "goal_funnel": 0,

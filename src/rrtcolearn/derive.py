@@ -6,11 +6,6 @@ gives is kept. Each derivation returns a `Choice` (key, value, reason) that the 
 prints and ``config.toml`` records, so a run shows what was chosen and why. The rules and
 the measurements behind them are in docs/derived_settings.md.
 
-- ``generate.max_state_distance`` (Alg. 2's reach, in the weighted metric): the paper's
-  1.5, unless half of the pilot simulations leave it within `REACH_STEPS` (4) RK4 steps;
-  then the reach that half of them keep within for 4 steps. Every shipped system keeps 1.5
-  (the quadrotor, fastest, leaves it after 4 steps); dynobench's planar quadrotor left it
-  after one (3.4: 3-4 points per simulation instead of 1).
 - ``generate.max_cost`` (Alg. 2's cost bound): the 90% quantile of the cost at which a pilot
   of simulations, run without a cost bound, first leaves the data's reach ball: nine in ten
   simulations stop by distance, and the bound cuts only the slow tail (4.5 on the paper's
@@ -56,8 +51,6 @@ if TYPE_CHECKING:
 VALIDITY_QUANTILE = 0.97
 COST_QUANTILE = 0.9
 PILOT_SIMULATIONS = 1000
-PAPER_REACH = 1.5
-REACH_STEPS = 4
 HELD_OUT_QUERIES = 5000
 EXTEND_MIN_COVERAGE = 0.10
 
@@ -182,46 +175,6 @@ def plan_choices(plan: Any, system: System, max_state_distance: float) -> list[C
               "control_samples": lambda: control_samples(system),
               "extend_distance": lambda: extend_distance(system, max_state_distance)}
     return [make() for key, make in wanted.items() if getattr(plan, key) is None]
-
-
-def pilot_reach(system: System, *, time_weight: float, dt: float,
-                seed: np.random.SeedSequence, u_max: float | None = None,
-                steps: int = REACH_STEPS) -> Choice:
-    """Alg. 2's reach ``generate.max_state_distance``: the paper's 1.5, unless half the
-    pilot simulations (those of `pilot_max_cost`) leave it within ``steps`` RK4 steps; then
-    the median over the pilot of the farthest weighted distance from the start in the
-    first ``steps`` steps, so that the median simulation keeps ``steps`` data points.
-
-    A system whose rate coordinates change by much of their range per step (dynobench's
-    planar quadrotor turns by 2.2 rad/s per 0.01 s step, a seventh of its yaw-rate range)
-    would otherwise give one data point per simulation."""
-    from rrtcolearn.data.generate import sample_starts
-    from rrtcolearn.integrate import rollout_batch
-
-    x0, _, lam, valid = sample_starts(system, seed, 0, PILOT_SIMULATIONS, time_weight)
-    z0 = np.hstack([x0, lam, np.zeros((len(x0), 1))])[valid]
-    states, _, lengths, _ = rollout_batch(system, z0, time_weight, dt, steps, 1e300, 1e300,
-                                          system.n_states, u_max=u_max)
-    excursion = farthest_excursion(system, z0[:, : system.n_states], states, lengths)
-    kept = excursion[lengths > 0]
-    value = float(np.median(kept)) if len(kept) else 0.0
-    if value <= PAPER_REACH:
-        return Choice("generate.max_state_distance", PAPER_REACH, f"the paper's 1.5: half "
-                      f"of {len(kept)} pilot simulations stay within it for {steps} RK4 steps")
-    return Choice("generate.max_state_distance", value, f"half of {len(kept)} pilot "
-                  f"simulations stay within it for {steps} RK4 steps (half leave the "
-                  "paper's 1.5 sooner)")
-
-
-def farthest_excursion(system: System, x0: np.ndarray, states: np.ndarray,
-                       lengths: np.ndarray) -> np.ndarray:
-    """(S,) farthest distance, in Alg. 2's weighted metric (`System.metric_scale`), of each
-    simulation's first ``lengths`` states ``states`` (S, steps, n) from its start ``x0``
-    (S, n); 0 for a simulation with none."""
-    diff = (states - x0[:, None, :]) * system.metric_scale
-    dist = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
-    dist[np.arange(states.shape[1])[None, :] >= lengths[:, None]] = 0.0
-    return dist.max(axis=1) if dist.shape[1] else np.zeros(len(x0))
 
 
 def pilot_max_cost(system: System, *, time_weight: float, dt: float,

@@ -129,20 +129,14 @@ def resolve(config: Config, system: System | None = None) -> Config:
     choices = []
     if g.n_simulations is None and g.offline_budget is None:
         choices.append(derive.n_simulations(system))
-    reach = g.max_state_distance
-    if reach is None:  # the cost bound and the target extension are measured against it
-        choices.append(derive.pilot_reach(
-            system, time_weight=config.system.time_weight, dt=g.dt,
-            seed=seed_stream(config.seed, "derive"), u_max=config.system.truncation_limit))
-        reach = choices[-1].value
     if g.max_cost is None:
         choices.append(derive.pilot_max_cost(
             system, time_weight=config.system.time_weight, dt=g.dt,
-            max_state_distance=reach, max_duration=g.max_duration,
+            max_state_distance=g.max_state_distance, max_duration=g.max_duration,
             seed=seed_stream(config.seed, "derive"), u_max=config.system.truncation_limit))
     if config.learn.learner is None:
         choices.append(derive.learner(system))
-    choices += derive.plan_choices(config.plan, system, reach)
+    choices += derive.plan_choices(config.plan, system, g.max_state_distance)
     return _record(config, choices)
 
 
@@ -432,7 +426,7 @@ class FittedModel:
     config: Config
     functions: LearnedFunctions
     max_duration: float
-    max_state_distance: float | None  # None: the configuration's, derived if open
+    max_state_distance: float
 
     def __post_init__(self) -> None:
         # a model assembled by hand from an unresolved configuration: derive what is open,
@@ -447,8 +441,6 @@ class FittedModel:
                 "learn.learner", self.functions.learner,
                 "the fitted learner")])
         self.config = resolve(self.config, self.system)
-        if self.max_state_distance is None:
-            self.max_state_distance = float(self.config.generate.max_state_distance)
 
     def planner_settings(self, config: Config | None = None) -> PlannerSettings:
         """The planner's settings: the plan section of ``config`` (default: the model's

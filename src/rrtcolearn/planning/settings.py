@@ -48,7 +48,7 @@ class PlannerSettings:
     time_weight: float = _default(SystemConfig, "time_weight")
     dt: float = _default(GenerateConfig, "dt")
     max_duration: float = _default(GenerateConfig, "max_duration")
-    data_reach: float = derive.PAPER_REACH
+    data_reach: float = _default(GenerateConfig, "max_state_distance")
     metric_scale: np.ndarray | None = None
     enforce_bounds: bool = True
     input_limit: str = _default(PlanConfig, "input_limit")
@@ -87,9 +87,8 @@ class PlannerSettings:
         plan = {f.name: getattr(config.plan, f.name) for f in fields(cls)
                 if f.name in PlanConfig.model_fields}
         g = config.generate
-        reach = derive.PAPER_REACH if g.max_state_distance is None else g.max_state_distance
         own = {"time_weight": config.system.time_weight, "dt": g.dt,
-               "max_duration": g.max_duration, "data_reach": reach,
+               "max_duration": g.max_duration, "data_reach": g.max_state_distance,
                "funnel_max_cost": np.inf if g.max_cost is None else g.max_cost}
         return cls(**{**own, **plan, **data})
 
