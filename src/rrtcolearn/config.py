@@ -135,8 +135,8 @@ class GenerateConfig(_Section):
     dt: float = Field(0.01, gt=0, le=1.0, description="RK4 step (s)")
     max_cost: float | None = Field(
         None, gt=0, description="stop a simulation when its cost exceeds this (none: "
-        "derived, the median cost at which pilot simulations leave the reach ball; 2.1 for "
-        "the paper's pendulum, whose bound is 2)")
+        "derived, the 90% quantile of the cost at which pilot simulations leave the reach "
+        "ball; 4.5 for the paper's pendulum, whose bound is 2)")
     max_state_distance: float = Field(1.5, gt=0,
                                       description="... or when |x(t) - x0| exceeds this")
     max_duration: float = Field(20.0, gt=0, le=1000.0,
