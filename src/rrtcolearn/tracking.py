@@ -53,8 +53,8 @@ from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.systems.base import System
 
 __all__ = ["LADDER", "SELF_TEST", "Nominal", "Rollouts", "TrackingController", "check_truth",
-           "input_box",
-           "nominal_trajectory", "riccati_gains", "rollouts", "summarise", "tracking_weights"]
+           "input_box", "nominal_trajectory", "riccati_gains", "rollouts", "summarise",
+           "tracking_weights"]
 
 LADDER = (1.0, 10.0, 100.0, 1000.0, 10000.0)
 """The multiples of Bryson's Q the self-test chooses among (`TrackingController.build`)."""
@@ -198,14 +198,14 @@ class TrackingController:
             raise ConfigError("the linearisation along the plan is not finite")
         Q, R = tracking_weights(problem, dt)
         goal = build_goal_lqr(problem, dt, np.diag(_input_weight(system)))
+        if isinstance(goal, str):
+            P_final, terminal = Q / dt, f"diag(1/h^2) ({goal})"
+        else:
+            P_final, terminal = goal.P, "the goal LQR's Riccati solution"
         low, high = input_box(problem)
         best, best_score = None, None
         for factor in ladder:
             w = factor * state_weight
-            if isinstance(goal, str):
-                P_final, terminal = Q / dt, f"diag(1/h^2) ({goal})"
-            else:
-                P_final, terminal = goal.P, "the goal LQR's Riccati solution"
             K, P = riccati_gains(A, B, w * Q, R, P_final)
             c = cls(problem, nominal, K, P, low, high, terminal, float(w))
             if len(ladder) == 1:
