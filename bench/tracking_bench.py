@@ -5,12 +5,14 @@ For each problem a plan is made once (``rrtcolearn run``, or ``plan`` among obst
 tracked (`rrtcolearn.tracking`) on the "true" system of examples/heavier.py (every mass and
 length 10% larger, inertias 1.1^3), with process noise ``--noise`` (a fraction of each
 state's box width per sqrt(s)) and a start error within +- ``--start-error`` of the box width,
-seed 0: the same draws for both. One row per state weight of ``--weights`` (multiples of
-Bryson's Q: 1 is the goal LQR's rule). Prints one line per row and, last, one JSON line.
+seed 0: the same draws for both. One row for the default (the state weight the model's
+self-test picks, `tracking.LADDER`) and one per fixed weight of ``--weights`` (multiples of
+Bryson's Q: 1 is the goal LQR's rule, the default before the self-test). Prints one line per
+row and, last, one JSON line.
 
     python bench/tracking_bench.py [--rollouts 100] [--runs-dir runs/tracking]
                                    [--noise 0.001] [--start-error 0.01]
-                                   [--weights 1,10,100,1000]
+                                   [--weights 1]
 
 The issue's target: tracked within 2x the goal tolerance >= 95%, inputs always in the box.
 """
@@ -73,7 +75,7 @@ def main() -> None:
     ap.add_argument("--runs-dir", type=Path, default=Path("runs/tracking"))
     ap.add_argument("--noise", type=float, default=1e-3)
     ap.add_argument("--start-error", type=float, default=0.01)
-    ap.add_argument("--weights", default="1,10,100,1000")
+    ap.add_argument("--weights", default="1", help="fixed weights to compare ('': none)")
     args = ap.parse_args()
     rows = []
     for name, directory, options, truth_factory in (*PROBLEMS, OBSTACLE):
@@ -81,19 +83,26 @@ def main() -> None:
         d = pipeline.read_plan(path)
         system = pipeline.plan_system(d)
         truth = truth_factory()
-        for weight in (float(v) for v in args.weights.split(",")):
+        fixed = [float(v) for v in args.weights.split(",") if v]
+        for weight in (None, *fixed):
             cpu = time.process_time()
-            c = tracking.TrackingController.build(system, d, state_weight=weight)
+            c = (tracking.TrackingController.build(system, d) if weight is None else
+                 tracking.TrackingController.build(system, d, state_weight=weight,
+                                                   ladder=(1.0,)))
             runs = tracking.rollouts(c, args.rollouts, truth=truth, noise=args.noise,
                                      start_error=args.start_error, seed=0)
             ol, tr = (tracking.summarise(c, r) for r in runs)
             cpu = time.process_time() - cpu
             row = {"problem": name, "plan_status": d["status"], "edges": len(d["path"]),
-                   "duration_s": round(c.nominal.t[-1], 3), "state_weight": weight,
+                   "duration_s": round(c.nominal.t[-1], 3),
+                   "rule": "self-test" if weight is None else "fixed",
+                   "state_weight": c.state_weight,
                    "open_loop": ol, "tracked": tr, "cpu_s": round(cpu, 2),
                    "terminal": c.terminal}
             rows.append(row)
-            print(f"{name:26s} w={weight:<4g} plan {d['status']:5s} {len(d['path']):3d} edges"
+            rule = "auto" if weight is None else "fixed"
+            print(f"{name:26s} {rule} w={c.state_weight:<5g} plan {d['status']:5s} "
+                  f"{len(d['path']):3d} edges"
                   f" {c.nominal.t[-1]:5.2f} s | reached / 2x: open-loop {ol['reached']:.2f}"
                   f" / {ol['reached_2x']:.2f}, tracked {tr['reached']:.2f} / "
                   f"{tr['reached_2x']:.2f} | final err median OL {ol['final_error_median']:.3g}"

@@ -166,6 +166,52 @@ def test_tracking_on_the_exact_model_reproduces_the_plan(controller):
     assert np.all(np.abs(tracked.inputs) <= 1.0)
 
 
+def test_weights_are_brysons_times_the_factor_the_self_test_picks(controller):
+    """Q and R by hand for the pendulum at |u| <= 1 (angle: half a turn; omega in
+    [-pi, pi]; torque box half-width 1), and the self-test redone with a pendulum written
+    here whose torque acts at 0.9 of the model's."""
+    from rrtcolearn.planning.lqr import step_jacobians
+    from rrtcolearn.tracking import SELF_TEST
+
+    c, d = controller
+    system, dt = pipeline.plan_system(d), d["dt"]
+    Q_hand = dt * np.diag([1 / np.pi**2, 1 / np.pi**2])
+    R_hand = np.array([[dt * 1.0]])
+    jac = [step_jacobians(system, x, u, dt)
+           for x, u in zip(c.nominal.state[:-1], c.nominal.input[:-1], strict=True)]
+    A, B = np.array([a for a, _ in jac]), np.array([b for _, b in jac])
+    fixed = {w: TrackingController.build(system, d, ladder=(w,)) for w in (1.0, 1e4)}
+    for w, f in fixed.items():
+        K, _ = riccati_gains(A, B, w * Q_hand, R_hand, c.P[-1])
+        np.testing.assert_allclose(f.K, K, rtol=1e-9, atol=1e-12)
+        assert f.state_weight == w
+    np.testing.assert_array_equal(
+        TrackingController.build(system, d, ladder=(10.0,), state_weight=2.0).K,
+        TrackingController.build(system, d, ladder=(20.0,)).K)
+
+    class WeakerPendulum:  # theta'' = sin(theta) + 0.9 u, written here
+        state_names, input_names, angle_dims = ("theta", "omega"), ("torque",), (0,)
+        name = "weaker"
+        state_low, state_high = system.state_low, system.state_high
+
+        @staticmethod
+        def dynamics(x, u):
+            return np.column_stack([x[:, 1], np.sin(x[:, 0]) + 0.9 * u[:, 0]])
+
+    assert SELF_TEST["input_scale"] == 0.9
+    scores = {}
+    for w, f in fixed.items():
+        _, runs = rollouts(f, SELF_TEST["runs"], truth=WeakerPendulum(),
+                           noise=SELF_TEST["noise"], start_error=SELF_TEST["start_error"],
+                           seed=SELF_TEST["seed"])
+        dist = np.linalg.norm(runs.states[:, -1] - np.array(d["goal"]), axis=1)
+        scores[w] = (-np.mean(dist <= 2 * d["goal_tolerance"]), np.median(dist))
+    assert scores[1.0] != scores[1e4]
+    picked = TrackingController.build(system, d, ladder=(1.0, 1e4))
+    assert picked.state_weight == min(scores, key=scores.get)
+    np.testing.assert_array_equal(picked.K, fixed[picked.state_weight].K)
+
+
 def test_tracking_corrects_a_start_error_open_loop_does_not(controller):
     c, _ = controller
     open_loop, tracked = rollouts(c, 20, start_error=0.01, noise=1e-3, seed=1)

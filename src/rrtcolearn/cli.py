@@ -825,8 +825,9 @@ def export(
             K = np.concatenate([c.K, c.K[-1:]]).reshape(len(nom.t), -1)
             g_target = target.with_name(f"{target.stem}-gains{target.suffix}")
             _write_table(g_target, fmt, [
-                f"rrtcolearn tracking gains: system {system.name}, step {nom.dt} s, terminal "
-                f"cost {c.terminal}",
+                f"rrtcolearn tracking gains: system {system.name}, step {nom.dt} s, state "
+                f"weight {c.state_weight:g} x Bryson's Q (the self-test's), terminal cost "
+                f"{c.terminal}",
                 "u = clip(u_nom - K (x - x_nom), input box) with K held from each row's t to "
                 "the next (the last row's K: the last step's); angles of x - x_nom the short "
                 "way round",
@@ -856,8 +857,8 @@ def track(
         "--start-error", help="start state off by a uniform draw within +- this fraction of "
         "each state's box width")] = 0.0,
     state_weight: Annotated[float, typer.Option(
-        "--state-weight", help="multiplies the state weight Q (1: Bryson's rule from the "
-        "boxes, as the goal LQR)")] = 1.0,
+        "--state-weight", help="multiplies the state weight Q the self-test picks (a multiple "
+        "of Bryson's rule from the boxes, as the goal LQR)")] = 1.0,
     seed: SeedOpt = None,
     plot: Annotated[Path | None, typer.Option(
         "--plot", help="write the figure of the nominal and the runs' spread (PNG)")] = None,
@@ -893,7 +894,7 @@ def track(
 
         table = Table(title=f"track {plan_file}: {rollouts} runs on "
                       f"{true_system or 'the model'}, noise {noise:g}, start error "
-                      f"{start_error:g}, state weight {state_weight:g}, seed "
+                      f"{start_error:g}, state weight {c.state_weight:g} x Bryson's, seed "
                       f"{0 if seed is None else seed}")
         table.add_column("")
         for name in ("open-loop", "tracked"):

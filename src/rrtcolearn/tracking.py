@@ -17,7 +17,14 @@ What, for any `System` and any plan (nothing here depends on a system's name):
 * the weights: Bryson's rule from the problem's boxes, as the goal LQR states it
   (`planning.lqr`): Q_ii = dt / h_i^2 with h_i the state constraint box's half-width (an
   angle's: half a turn), R_jj = dt / g_j^2 with g_j the input box's half-width (the running
-  cost's R_jj where an input has no finite limit);
+  cost's R_jj where an input has no finite limit), Q multiplied by the factor of `LADDER`
+  that a self-test on the plan's own model picks: with every input 10% weaker than modelled
+  (`SELF_TEST`; a margin for a robot that is heavier or weaker than its model, which the
+  user does not have), process noise and a start error, the factor whose runs end within
+  twice the goal tolerance most often, ties to the smallest median final error. Bryson's
+  rule alone is soft for a tolerance well under the boxes (0.1 against half a turn); stiffer
+  gains saturate a plan that rides its input bound and the clipped loop can go unstable:
+  the self-test sees both, on the model;
 * the terminal cost: where the goal is an equilibrium, the goal LQR's Riccati solution P
   (`planning.lqr.build_goal_lqr`: its infinite-horizon cost-to-go, so the gains near the end
   hand over smoothly to the goal's regulator); elsewhere P_N = diag(1 / h_i^2), the end
@@ -45,8 +52,15 @@ from rrtcolearn.planning.lqr import bryson_weights, build_goal_lqr, input_box, s
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.systems.base import System
 
-__all__ = ["Nominal", "Rollouts", "TrackingController", "check_truth", "input_box",
-           "nominal_trajectory", "riccati_gains", "rollouts", "summarise", "tracking_weights"]
+__all__ = ["LADDER", "SELF_TEST", "Nominal", "Rollouts", "TrackingController", "check_truth",
+           "input_box", "nominal_trajectory", "riccati_gains", "rollouts", "summarise",
+           "tracking_weights"]
+
+LADDER = (1.0, 10.0, 100.0, 1000.0, 10000.0)
+"""The multiples of Bryson's Q the self-test chooses among (`TrackingController.build`)."""
+SELF_TEST = {"runs": 20, "input_scale": 0.9, "noise": 1e-3, "start_error": 0.01, "seed": 0}
+"""The self-test's rollouts on the plan's model: their number, the factor on every input
+(0.9: the inputs act 10% weaker than modelled), noise and start error (`rollouts`), seed."""
 
 
 @dataclass(frozen=True)
@@ -152,7 +166,8 @@ class TrackingController:
     """Time-varying LQR about a plan's nominal (module docstring); `build` makes it.
 
     ``K`` (N, m, n) the gain of each step, ``P`` (N+1, n, n) the cost-to-go matrices,
-    ``u_low``/``u_high`` (m,) the clipping box, ``terminal`` how P[N] was chosen."""
+    ``u_low``/``u_high`` (m,) the clipping box, ``terminal`` how P[N] was chosen,
+    ``state_weight`` the factor on Bryson's Q the gains were computed with."""
 
     problem: PlanningProblem
     nominal: Nominal
@@ -161,14 +176,17 @@ class TrackingController:
     u_low: np.ndarray
     u_high: np.ndarray
     terminal: str
+    state_weight: float = 1.0
 
     @classmethod
     def build(cls, system: System, plan, problem: PlanningProblem | None = None, *,
-              state_weight: float = 1.0) -> TrackingController:
+              state_weight: float = 1.0, ladder: tuple[float, ...] = LADDER
+              ) -> TrackingController:
         """The controller of a plan (a `Plan` or a plan file's content) on ``system`` (the
         plan's model); ``problem`` defaults to the one the plan records
-        (`evaluate.plan_problem`). ``state_weight`` multiplies the running Q (1: Bryson's
-        rule as the goal LQR uses it; larger tracks more stiffly for the same inputs)."""
+        (`evaluate.plan_problem`). Q is Bryson's times the factor of ``ladder`` the model's
+        self-test picks (module docstring; ``ladder=(1.0,)``: Bryson's rule as the goal LQR
+        uses it), times ``state_weight`` (larger tracks more stiffly for the same inputs)."""
         problem = plan_problem(system, plan) if problem is None else problem
         nominal = nominal_trajectory(system, plan)
         dt = nominal.dt
@@ -179,15 +197,23 @@ class TrackingController:
         if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
             raise ConfigError("the linearisation along the plan is not finite")
         Q, R = tracking_weights(problem, dt)
-        Q = state_weight * Q
         goal = build_goal_lqr(problem, dt, np.diag(_input_weight(system)))
         if isinstance(goal, str):
-            P_final, terminal = Q / (dt * state_weight), f"diag(1/h^2) ({goal})"
+            P_final, terminal = Q / dt, f"diag(1/h^2) ({goal})"
         else:
             P_final, terminal = goal.P, "the goal LQR's Riccati solution"
-        K, P = riccati_gains(A, B, Q, R, P_final)
         low, high = input_box(problem)
-        return cls(problem, nominal, K, P, low, high, terminal)
+        best, best_score = None, None
+        for factor in ladder:
+            w = factor * state_weight
+            K, P = riccati_gains(A, B, w * Q, R, P_final)
+            c = cls(problem, nominal, K, P, low, high, terminal, float(w))
+            if len(ladder) == 1:
+                return c
+            score = _self_test(c)
+            if best_score is None or score < best_score:
+                best, best_score = c, score
+        return best
 
     def deviation(self, x: np.ndarray, k: int) -> np.ndarray:
         """(N, n) x - the nominal state of sample ``k``, angles the short way round."""
@@ -284,6 +310,31 @@ def rollouts(controller: TrackingController, n: int = 100, *, truth: System | No
                 states[:, k + 1] = x
         out.append(Rollouts(states, inputs, tracked))
     return out[0], out[1]
+
+
+class _WeakerInputs:
+    """The plan's model with every input scaled by ``scale`` (the self-test's truth)."""
+
+    def __init__(self, system: System, scale: float) -> None:
+        self._system, self._scale = system, scale
+
+    def __getattr__(self, name: str):
+        return getattr(self._system, name)
+
+    def dynamics(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return self._system.dynamics(x, self._scale * u)
+
+
+def _self_test(controller: TrackingController) -> tuple[float, float]:
+    """The controller's score on its own model with weaker inputs (`SELF_TEST`), smaller
+    is better: (- the share of runs ending within twice the goal tolerance, the median final
+    goal distance)."""
+    t = SELF_TEST
+    truth = _WeakerInputs(controller.problem.system, t["input_scale"])
+    _, runs = rollouts(controller, t["runs"], truth=truth, noise=t["noise"],
+                       start_error=t["start_error"], seed=t["seed"])
+    s = summarise(controller, runs)
+    return -s["reached_2x"], s["final_error_median"]
 
 
 def summarise(controller: TrackingController, runs: Rollouts) -> dict:
