@@ -54,8 +54,27 @@ def test_coarser_step_is_every_kth_sample(paper_model, plan_dict):
     keep = (steps % 5 == 0) | ends
     np.testing.assert_array_equal(coarse["state"], fine["state"][keep])
     np.testing.assert_array_equal(coarse["edge"], fine["edge"][keep])
-    with pytest.raises(ValueError, match="whole multiple"):
+    with pytest.raises(ValueError, match="whole multiple or a whole fraction"):
         sample_path(paper_model.system, plan_dict, dt=0.015)
+
+
+def test_finer_step_re_simulates_each_edge_at_that_step(paper_model, plan_dict):
+    """dt = step / 4: every edge integrated at the finer step by an RK4 written here, from
+    its stored node; the samples at the plan's own times agree with the plan's step's to the
+    integrators' difference, and the edges still end on the plan's nodes."""
+    step, w = plan_dict["dt"], plan_dict["time_weight"]
+    fine = sample_path(paper_model.system, plan_dict, dt=step / 4)
+    coarse = sample_path(paper_model.system, plan_dict)
+    gaps = np.diff(fine["t"])
+    np.testing.assert_allclose(gaps[gaps > 0], step / 4)
+    for i, e in enumerate(plan_dict["path"]):
+        rows = np.flatnonzero(fine["edge"] == i)
+        states, u, _ = pendulum_edge(e, w, step / 4)
+        np.testing.assert_allclose(fine["state"][rows], states, atol=1e-9)
+        np.testing.assert_allclose(fine["input"][rows, 0], u, atol=1e-9)
+        np.testing.assert_allclose(fine["state"][rows[-1]], e["to"], atol=1e-6)
+        np.testing.assert_allclose(fine["state"][rows[::4]],
+                                   coarse["state"][coarse["edge"] == i], atol=1e-6)
 
 
 def test_export_command_writes_csv_and_npz(tiny_run):  # noqa: F811

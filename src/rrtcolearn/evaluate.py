@@ -137,23 +137,31 @@ def resimulate(system: System, plan) -> dict:
 
 def sample_path(system: System, plan, dt: float | None = None) -> dict[str, np.ndarray]:
     """Samples along a plan's path (a `Plan` or a plan file's content), re-simulated edge by
-    edge from each edge's stored start node at the plan's integration step: ``t`` (K,),
-    ``state`` (K, n), ``input`` (K, m), ``costate`` (K, n; NaN on random-control edges) and
-    ``edge`` (K,), the path edge each sample belongs to.
+    edge from each edge's stored start node: ``t`` (K,), ``state`` (K, n), ``input`` (K, m),
+    ``costate`` (K, n; NaN on random-control edges) and ``edge`` (K,), the path edge each
+    sample belongs to.
 
-    Every edge gives its first and its last sample, and between them every ``dt`` (default the
-    plan's step; a whole multiple of it) of the path's time. Where two edges meet there are
-    two rows with the same time: the end of the one edge (the left limit of the input) and the
+    Every edge gives its first and its last sample, and between them every ``dt`` of the
+    path's time: by default the plan's integration step; a whole multiple of it samples the
+    re-simulation at that step; a whole fraction of it (step / k) re-simulates every edge at
+    the finer step dt (held inputs held, extremals integrated finer: the same path to the
+    integrator's error), for a follower that replays the inputs open-loop, whose error from
+    interpolating them falls as dt^2 (docs/formats.md). Where two edges meet there are two
+    rows with the same time: the end of the one edge (the left limit of the input) and the
     start of the next (its right limit; the costate is drawn afresh there, so the input
-    jumps). A follower that interpolates the inputs linearly between rows, as ``numpy.interp``
-    does, then never blends two edges' inputs: within an extremal the input is continuous,
-    within a random-control edge it is held."""
+    jumps). A follower that interpolates the inputs linearly between rows, as
+    ``numpy.interp`` does, then never blends two edges' inputs: within an extremal the input
+    is continuous, within a random-control edge it is held."""
     edges, w, step = _plan_fields(plan)
     dt = step if dt is None else float(dt)
-    every = round(dt / step)
-    if every < 1 or abs(every * step - dt) > 1e-9 * max(1.0, dt):
-        raise ValueError(f"dt {dt}: give a whole multiple of the plan's integration step "
-                         f"{step}")
+    every, finer = round(dt / step), round(step / dt)
+    if every >= 1 and abs(every * step - dt) <= 1e-9 * max(1.0, dt):
+        finer = 1
+    elif finer > 1 and abs(finer * dt - step) <= 1e-9 * max(1.0, step):
+        every, step = 1, dt
+    else:
+        raise ValueError(f"dt {dt}: give a whole multiple or a whole fraction of the plan's "
+                         f"integration step {step}")
     if not edges:
         raise ValueError("the plan has no path to sample (it starts in the goal region or "
                          "was not solved and found no node nearer the goal)")
