@@ -996,7 +996,3 @@ def main() -> None:
         # that numba, scipy and the model created (0.2-0.3 s after a plan); frozen, they are
         # left to the operating system. atexit handlers (worker pools) still run.
         gc.freeze()
-
-
-if __name__ == "__main__":
-    main()
