@@ -114,8 +114,8 @@ def _outcome_shares(outcomes: dict) -> str:
 def _one_blas_thread() -> None:
     """One BLAS thread, unless the environment says otherwise: a plan multiplies only small
     matrices, and starting the thread pools of numpy's and scipy's OpenBLAS costs about 0.1 s
-    of a fresh process on two cores. Takes effect when numpy is not yet imported (this
-    module does not import it)."""
+    of a fresh process on two cores. Takes effect when numpy is not yet imported (no
+    module of the command line imports it)."""
     for var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
         os.environ.setdefault(var, "1")
 
