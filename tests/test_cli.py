@@ -257,16 +257,16 @@ def test_run_works_for_every_shipped_system(name, query, tmp_path):
 
 def test_run_name_follows_the_system():
     """Without --out a user system's run does not land in the pendulum's directory."""
-    from rrtcolearn.cli import _run_name
+    from rrtcolearn.cli.common import run_name
     from rrtcolearn.config import load_config
 
-    assert _run_name(load_config()) == "pendulum-swingup"
+    assert run_name(load_config()) == "pendulum-swingup"
     user = load_config(overrides=['system.name="examples.damped_pendulum:make_damped_pendulum"'])
-    assert _run_name(user) == "examples.damped_pendulum-make_damped_pendulum"
+    assert run_name(user) == "examples.damped_pendulum-make_damped_pendulum"
     named = load_config(overrides=['name="mine"', 'system.name="double_integrator"'])
-    assert _run_name(named) == "mine"
+    assert run_name(named) == "mine"
     # a registered system's recommended configuration names its runs
-    assert _run_name(load_config(overrides=['system.name="cartpole"'])) == "cartpole-swingup"
+    assert run_name(load_config(overrides=['system.name="cartpole"'])) == "cartpole-swingup"
 
 
 def test_plan_queries_from_a_file(tiny_run, tmp_path):
@@ -360,13 +360,13 @@ def test_progress_is_lines_on_stderr_without_a_terminal(capsys):
     """Without a terminal (a log, a pipe, a batch job) long work reports plain lines on
     stderr, at most one per interval, the first after one interval: short work prints
     nothing."""
-    from rrtcolearn.cli import _LineProgress, _progress
+    from rrtcolearn.cli.common import LineProgress, progress_bar
 
-    assert isinstance(_progress(), _LineProgress)  # pytest's output is no terminal
-    quiet = _LineProgress(every=3600.0)
+    assert isinstance(progress_bar(), LineProgress)  # pytest's output is no terminal
+    quiet = LineProgress(every=3600.0)
     quiet.advance(quiet.add_task("fast", total=5), 5)
     assert capsys.readouterr().err == ""
-    p = _LineProgress(every=0.0)
+    p = LineProgress(every=0.0)
     with p:
         t = p.add_task("generate", total=10)
         p.advance(t, 3)
