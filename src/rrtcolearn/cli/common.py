@@ -212,7 +212,7 @@ class LineProgress:
 
 def progress_bar() -> Progress | LineProgress:
     """A progress bar on a terminal, else `LineProgress`'s occasional lines."""
-    if not console.is_terminal and not state.get("force_progress"):
+    if not console.is_terminal:
         return LineProgress()
     from rich.progress import (
         BarColumn,

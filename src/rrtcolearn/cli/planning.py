@@ -29,9 +29,12 @@ from rrtcolearn.errors import ConfigError
 
 if TYPE_CHECKING:
     from rrtcolearn.config import Config
+    from rrtcolearn.dynobench import DynobenchProblem
+    from rrtcolearn.planning.tree import Plan
+    from rrtcolearn.systems import System
 
 
-def read_dynobench(problem: str | None) -> tuple[object, dict]:
+def read_dynobench(problem: str | None) -> tuple[DynobenchProblem | None, dict]:
     """The dynobench problem named on the command line and the config sections posing it
     (None, {} without one)."""
     if problem is None:
@@ -42,7 +45,8 @@ def read_dynobench(problem: str | None) -> tuple[object, dict]:
     return read, dynobench.config_options(read)
 
 
-def write_dynobench(read, p, system, plan_path: Path) -> None:
+def write_dynobench(read: DynobenchProblem | None, p: Plan, system: System,
+                    plan_path: Path) -> None:
     """The solved plan beside ``plan_path`` in dynobench's result format."""
     if read is None or not p.solved:
         return
@@ -53,7 +57,7 @@ def write_dynobench(read, p, system, plan_path: Path) -> None:
                            dynobench.result(read, sample_path(system, p)))
 
 
-def write_plan(p, path: Path, state_names: tuple[str, ...] | None = None,
+def write_plan(p: Plan, path: Path, state_names: tuple[str, ...] | None = None,
                plot: bool = True) -> None:
     """The plan file, and with ``plot`` the PNG of its tree beside it. Without ``plot`` a PNG
     left there by an earlier plot is removed: it would show another plan."""
@@ -70,7 +74,7 @@ def write_plan(p, path: Path, state_names: tuple[str, ...] | None = None,
         png.unlink(missing_ok=True)
 
 
-def plan_summary(p) -> dict:
+def plan_summary(p: Plan) -> dict:
     """A plan's figures for the summary table (and `run`'s summary.json)."""
     return {"status": p.status, "solved": p.solved, "iterations": p.iterations,
             "nodes": p.nodes, "path_cost": round(p.path_cost, 4),

@@ -52,8 +52,9 @@ def _write_table(target: Path, fmt: str, header: list[str], columns: list[str],
 def export(
     plan_file: Annotated[Path, typer.Argument(help="plan file (JSON) written by plan or run")],
     dt: Annotated[float | None, typer.Option(
-        help="sample step (s), a whole multiple of the plan's integration step "
-             "(default: that step)")] = None,
+        help="sample step (s), a whole multiple of the plan's integration step, or a whole "
+             "fraction of it (every edge re-simulated at that finer step, for an open-loop "
+             "replay; docs/formats.md) (default: that step)")] = None,
     fmt: Annotated[str, typer.Option("--format", help="csv or npz")] = "csv",
     out: Annotated[Path | None, typer.Option(
         "--out", help="output file (default: the plan file with .csv or .npz)")] = None,
@@ -83,7 +84,8 @@ def export(
                    *(f"lambda_{name}" for name in system.state_names), "edge"]
         header = [
             f"rrtcolearn trajectory: system {system.name}, {system.n_states} states, "
-            f"{system.n_inputs} inputs, integration step {d['dt']} s",
+            f"{system.n_inputs} inputs, integration step {d['dt']} s"
+            + (f", re-simulated at {dt} s" if dt is not None and dt < d["dt"] else ""),
             "units: t in seconds; states, inputs and costates (lambda_, nan on "
             "random-control edges) in the units of the system's definition",
             "inputs between rows: continuous within an extremal edge (interpolate linearly), "
