@@ -456,9 +456,10 @@ class LearnedFunctions:
         """The arrays the model was fitted on and stores (``inputs`` (N, 2n), ``cost`` (N,),
         ``targets`` (N, k+1), the system's scales, ranges and symmetries). A network model
         loaded from a file does not hold them: its plans need only the index built from
-        them, and they were 93 MiB of the acrobot's default model (issue 31). Asked for
-        (the k-NN regressors, `save`), they are read from that file again, which must still
-        hold the arrays it was loaded from."""
+        them, and they are the largest arrays after the index's points (a plan's peak
+        memory, issue 31: docs/performance.md). Asked for (the k-NN regressors, `save`),
+        they are read from that file again, which must still hold the arrays it was loaded
+        from."""
         if self._training is None and self._released_from is not None:
             path, sha256 = self._released_from
             arrays, meta = load_arrays(path, FUNCTIONS_FORMAT)
@@ -733,8 +734,8 @@ def _periodic_copies(X: np.ndarray, periodic, scale: np.ndarray, threshold: floa
 @numba.njit(cache=True)
 def _gather_turned(X, rows, turns, columns, turn, out):
     """``out[r] = X[rows[r]]`` with both ends of angle ``columns[a]`` moved by ``turns[r, a]``
-    whole turns of ``turn[a]`` (one pass over the rows: numpy's gather, masks and
-    in-place adds took 0.3-0.5 s of a 4-state model's load; the same sums)."""
+    whole turns of ``turn[a]``: one compiled pass over the rows instead of numpy's gather,
+    masks and in-place adds (a plan's start-up; the same sums)."""
     n = X.shape[1] // 2
     for r in range(rows.shape[0]):
         src = rows[r]
