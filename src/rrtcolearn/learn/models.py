@@ -375,7 +375,7 @@ class LearnedFunctions:
             "rotation": np.asarray(features.rotation + (int(features.heading_wraps),) * bool(
                 features.rotation), dtype=np.int64)}
         self.max_duration_ = _max_duration(self.training_["targets"])
-        self._fit_index(*self._indexed(None))
+        self._fit_neighbours(*self._indexed(None))
         self.networks_ = None
         if self.learner == "mlp":
             self.networks_ = self._fit_networks()
@@ -405,7 +405,7 @@ class LearnedFunctions:
         """The neighbour index's points (P, 2n - k), its leaf order (P,) and the data row
         of each point (P,), from the training inputs (the query features set on the way);
         ``rows``: the index's saved leaf order (`NeighbourIndex.rows`), which spares the
-        tree's median searches. `_fit_index` builds the index on them.
+        tree's median searches. `_fit_neighbours` builds the index on them.
 
         The indexed points (the rows' scaled features, and their copies across angle seams)
         are made once, directly in the tree's leaf order, so that the tree holds no second
@@ -432,7 +432,7 @@ class LearnedFunctions:
         return _indexed_points(X, source, np.take(turns, rows, axis=0), periodic,
                                self.features_, scale), rows, source
 
-    def _fit_index(self, Xs: np.ndarray, rows: np.ndarray, source: np.ndarray) -> None:
+    def _fit_neighbours(self, Xs: np.ndarray, rows: np.ndarray, source: np.ndarray) -> None:
         """The neighbour index on the points `_indexed` made, V on it, and J's and U's k-NN
         regressors for the k-NN learner."""
         index = NeighbourIndex(Xs, np.arange(len(Xs), dtype=rows.dtype))
@@ -599,7 +599,7 @@ class LearnedFunctions:
             if model.networks_ is not None:
                 model._training = None
                 model._released_from = (Path(path), meta.get("sha256"))
-            model._fit_index(*indexed)
+            model._fit_neighbours(*indexed)
             del indexed
         except (KeyError, TypeError, ValueError) as exc:
             raise ArtefactError(f"{path} is not a readable model file ({exc})") from None
