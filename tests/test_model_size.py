@@ -199,3 +199,88 @@ def test_network_model_makes_the_knn_regressors_only_when_asked(fitted, tmp_path
     np.testing.assert_array_equal(f.cost_to_go_.predict(F), g.cost_to_go_.predict(F))
     np.testing.assert_array_equal(f.steering_.predict(F), g.steering_.predict(F))
     assert g._knn is not None and g.cost_to_go_.index_ is g.validity_.index_
+
+
+@pytest.fixture(scope="module")
+def network_file(tmp_path_factory):
+    """A small network model (the pendulum's data: seam copies in the index) and its file."""
+    from rrtcolearn.data.generate import generate_data
+    from rrtcolearn.systems import make
+
+    system = make("pendulum")
+    data, _ = generate_data(system, 5, 600, max_cost=2.0, max_state_distance=1.5)
+    f = LearnedFunctions(validity_threshold=0.8, learner="mlp", mlp_hidden=(8,),
+                         mlp_max_iter=3).fit(data, system)
+    path = tmp_path_factory.mktemp("network") / "functions.npz"
+    f.save(path)
+    return f, path
+
+
+def test_network_model_load_frees_the_training_arrays_before_the_index(network_file,
+                                                                       monkeypatch):
+    """Loading a network model frees the data's costs and steering targets before the
+    index's points are made, and its inputs before the tree is built on them (issue 31:
+    the load's peak memory holds the points and the tree, not the data as well); the
+    loaded model holds none of them. Watched with weak references to the arrays the file
+    gave."""
+    import weakref
+
+    from rrtcolearn.learn import models
+
+    _, path = network_file
+    refs, seen = {}, []
+    real_training, real_points, real_index = (models._training_arrays,
+                                              models._indexed_points, models.NeighbourIndex)
+
+    def training_arrays(arrays):
+        t = real_training(arrays)
+        refs.update({k: weakref.ref(t[k]) for k in ("inputs", "cost", "targets")})
+        return t
+
+    def alive():
+        return {k for k, r in refs.items() if r() is not None}
+
+    def indexed_points(*args, **kwargs):
+        seen.append(("points", alive()))
+        return real_points(*args, **kwargs)
+
+    def neighbour_index(*args, **kwargs):
+        seen.append(("index", alive()))
+        return real_index(*args, **kwargs)
+
+    monkeypatch.setattr(models, "_training_arrays", training_arrays)
+    monkeypatch.setattr(models, "_indexed_points", indexed_points)
+    monkeypatch.setattr(models, "NeighbourIndex", neighbour_index)
+    g, _ = LearnedFunctions.load(path)
+    assert seen == [("points", {"inputs"}), ("index", set())]
+    assert alive() == set() and g._training is None
+
+
+def test_network_model_reads_its_training_arrays_again_when_asked(network_file, tmp_path):
+    """The training arrays a loaded network model freed are read from its file when asked,
+    bit for bit the fitted model's; saved again, the file holds the same arrays (the same
+    digest). A file changed since the load is refused, not read."""
+    import shutil
+
+    f, path = network_file
+    g, meta = LearnedFunctions.load(path)
+    assert g._training is None
+    assert g.max_duration_ == f.max_duration_
+    assert sorted(g.training_) == sorted(f.training_)
+    for k, v in f.training_.items():
+        np.testing.assert_array_equal(g.training_[k], v)
+        assert g.training_[k].dtype == v.dtype
+    assert g.save(tmp_path / "again.npz") == meta["sha256"]
+
+    changed = tmp_path / "changed.npz"
+    shutil.copy(path, changed)
+    h, _ = LearnedFunctions.load(changed)
+    _rewrite(path, changed, lambda a: a.__setitem__("data.cost", a["data.cost"] * 2))
+    with pytest.raises(ArtefactError, match="changed since the model was loaded"):
+        h.training_  # noqa: B018
+
+
+def test_knn_model_keeps_its_training_arrays(fitted):
+    """The k-NN learner answers J and U from the data's costs and targets: nothing freed."""
+    _, g, _, _ = fitted
+    assert g._training is not None and g._released_from is None

@@ -9,6 +9,7 @@ needs per iteration.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numba
@@ -373,7 +374,8 @@ class LearnedFunctions:
             "invariant": np.asarray(features.invariant, dtype=np.int64),
             "rotation": np.asarray(features.rotation + (int(features.heading_wraps),) * bool(
                 features.rotation), dtype=np.int64)}
-        self._fit_neighbours()
+        self.max_duration_ = _max_duration(self.training_["targets"])
+        self._fit_neighbours(*self._indexed(None))
         self.networks_ = None
         if self.learner == "mlp":
             self.networks_ = self._fit_networks()
@@ -399,9 +401,11 @@ class LearnedFunctions:
         return _NeighbourAnswers(self.cost_to_go_, self.steering_, self.steering, local,
                                  LOCAL_RIDGE, self.input_scale_)
 
-    def _fit_neighbours(self, rows: np.ndarray | None = None) -> None:
-        """The neighbour index and the k-NN functions on it; ``rows``: the index's saved
-        leaf order (`NeighbourIndex.rows`), which spares the tree's median searches.
+    def _indexed(self, rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The neighbour index's points (P, 2n - k), its leaf order (P,) and the data row
+        of each point (P,), from the training inputs (the query features set on the way);
+        ``rows``: the index's saved leaf order (`NeighbourIndex.rows`), which spares the
+        tree's median searches. `_fit_neighbours` builds the index on them.
 
         The indexed points (the rows' scaled features, and their copies across angle seams)
         are made once, directly in the tree's leaf order, so that the tree holds no second
@@ -424,15 +428,18 @@ class LearnedFunctions:
         # row numbers as int32 where they fit: half the memory of the three arrays of them
         rows = check_permutation(rows, len(source)).astype(_row_dtype(len(source)), copy=False)
         source = source[rows]
-        Xs = _indexed_points(X, source, np.take(turns, rows, axis=0), periodic,
-                             self.features_, scale)
+        self.input_scale_ = scale
+        return _indexed_points(X, source, np.take(turns, rows, axis=0), periodic,
+                               self.features_, scale), rows, source
+
+    def _fit_neighbours(self, Xs: np.ndarray, rows: np.ndarray, source: np.ndarray) -> None:
+        """The neighbour index on the points `_indexed` made, V on it, and J's and U's k-NN
+        regressors for the k-NN learner."""
         index = NeighbourIndex(Xs, np.arange(len(Xs), dtype=rows.dtype))
         self.leaf_order_ = rows
         self.validity_ = ValidityClassifier(self.n_neighbors, self.validity_threshold).fit(
             Xs, None, index)
-        self.input_scale_ = scale
         self.source_ = source  # data row of each indexed point (padding repeats rows)
-        self.max_duration_ = float(t["targets"][:, -1].max()) if len(X) else 0.0
         # running share of the queries V accepted: where most are rejected, `query_valid`
         # first drops the rows whose nearest neighbour alone breaks the threshold (exact)
         self._accepted = 1.0
@@ -443,6 +450,30 @@ class LearnedFunctions:
         self._knn = None
         if self.learner == "knn":
             self._fit_knn()
+
+    @property
+    def training_(self) -> dict[str, np.ndarray]:
+        """The arrays the model was fitted on and stores (``inputs`` (N, 2n), ``cost`` (N,),
+        ``targets`` (N, k+1), the system's scales, ranges and symmetries). A network model
+        loaded from a file does not hold them: its plans need only the index built from
+        them, and they are the largest arrays after the index's points (a plan's peak
+        memory, issue 31: docs/performance.md). Asked for (the k-NN regressors, `save`),
+        they are read from that file again, which must still hold the arrays it was loaded
+        from."""
+        if self._training is None and self._released_from is not None:
+            path, sha256 = self._released_from
+            arrays, meta = load_arrays(path, FUNCTIONS_FORMAT)
+            if meta.get("sha256") != sha256:
+                raise ArtefactError(f"{path} changed since the model was loaded from it: "
+                                    "load the model again")
+            self._training = _training_arrays(arrays)
+            self._released_from = None
+        return self._training
+
+    @training_.setter
+    def training_(self, arrays: dict[str, np.ndarray]) -> None:
+        self._training = arrays
+        self._released_from = None
 
     def _fit_knn(self) -> None:
         """J's and U's k-NN regressors on V's index: the data rows' costs and steering
@@ -544,8 +575,6 @@ class LearnedFunctions:
             model = cls(**params)
             if model.steering not in STEERING_MODES:
                 raise ValueError(f"steering {model.steering!r} is none of {STEERING_MODES}")
-            model.training_ = {k[5:]: v for k, v in arrays.items() if k.startswith("data.")}
-            model._fit_neighbours(arrays.get("index.rows"))  # (files before it: built)
             model.networks_ = None
             if model.learner == "mlp":
                 from rrtcolearn.learn.mlp import NeuralRegressor
@@ -553,6 +582,25 @@ class LearnedFunctions:
                 model.networks_ = tuple(NeuralRegressor.from_arrays(
                     {k[2:]: v for k, v in arrays.items() if k.startswith(f"{p}.")})
                     for p in "JU")
+            rows = arrays.get("index.rows")  # (files before it: the tree is built)
+            training = _training_arrays(arrays)
+            del arrays  # from here on the training arrays are referenced by `training` only
+            model.max_duration_ = _max_duration(training["targets"])
+            if model.networks_ is not None:
+                # the networks answer J and U: the index needs the inputs and the system's
+                # constants, nothing reads the costs and steering targets, and the inputs
+                # are not read once the index's points are made (`training_` reads them
+                # all again if asked): each freed as soon as it is done with, so that the
+                # load's peak holds the points and the tree, not the data as well
+                training = {k: v for k, v in training.items() if k not in ("cost", "targets")}
+            model.training_ = training
+            del training
+            indexed = model._indexed(rows)
+            if model.networks_ is not None:
+                model._training = None
+                model._released_from = (Path(path), meta.get("sha256"))
+            model._fit_neighbours(*indexed)
+            del indexed
         except (KeyError, TypeError, ValueError) as exc:
             raise ArtefactError(f"{path} is not a readable model file ({exc})") from None
         model._answers = model._neighbour_answers() \
@@ -631,6 +679,17 @@ def best_valid(functions: LearnedFunctions, X: np.ndarray) -> tuple[int, np.ndar
     return v.index_.first_valid(Xs, order, v.n_neighbors, v.threshold), None
 
 
+def _training_arrays(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The training arrays of a model file's arrays (``data.*``, without the prefix)."""
+    return {k[5:]: v for k, v in arrays.items() if k.startswith("data.")}
+
+
+def _max_duration(targets: np.ndarray) -> float:
+    """The longest steering duration of the data (the targets' last column), 0 without
+    data."""
+    return float(targets[:, -1].max()) if len(targets) else 0.0
+
+
 def _dilate(grid: np.ndarray) -> np.ndarray:
     """The cells of a boolean grid within one cell (in every coordinate) of a True cell:
     scipy.ndimage's maximum_filter(size=3, mode="constant", cval=False), as shifted ORs
@@ -672,30 +731,47 @@ def _periodic_copies(X: np.ndarray, periodic, scale: np.ndarray, threshold: floa
     return source, turns
 
 
-def _shifted_rows(X: np.ndarray, rows: np.ndarray, turns: np.ndarray, periodic
-                  ) -> np.ndarray:
-    """X[rows] (Q, 2n) with both ends of each angle moved by ``turns`` (Q, a) whole turns."""
-    out = np.take(X, rows, axis=0)  # the same copy as X[rows], in a fifth of its time
+@numba.njit(cache=True)
+def _gather_turned(X, rows, turns, columns, turn, out):
+    """``out[r] = X[rows[r]]`` with both ends of angle ``columns[a]`` moved by ``turns[r, a]``
+    whole turns of ``turn[a]``: one compiled pass over the rows instead of numpy's gather,
+    masks and in-place adds (a plan's start-up; the same sums)."""
     n = X.shape[1] // 2
-    for a, (j, lo, hi) in enumerate(periodic):
-        for sign in (1, -1):
-            moved = turns[:, a] == sign
-            out[moved, j] += sign * (hi - lo)
-            out[moved, n + j] += sign * (hi - lo)
+    for r in range(rows.shape[0]):
+        src = rows[r]
+        for c in range(X.shape[1]):
+            out[r, c] = X[src, c]
+        for a in range(columns.shape[0]):
+            if turns[r, a] != 0:
+                shift = turns[r, a] * turn[a]
+                out[r, columns[a]] += shift
+                out[r, n + columns[a]] += shift
     return out
+
+
+def _shifted_rows(X: np.ndarray, rows: np.ndarray, turns: np.ndarray, periodic,
+                  out: np.ndarray | None = None) -> np.ndarray:
+    """X[rows] (Q, 2n) with both ends of each angle moved by ``turns`` (Q, a) whole turns;
+    written into ``out`` (at least Q rows) if given."""
+    out = np.empty((len(rows), X.shape[1])) if out is None else out[:len(rows)]
+    columns = np.array([int(j) for j, _, _ in periodic], dtype=np.int64)
+    turn = np.array([hi - lo for _, lo, hi in periodic], dtype=np.float64)
+    return _gather_turned(np.ascontiguousarray(X, dtype=np.float64), rows,
+                          np.ascontiguousarray(turns, dtype=np.int8), columns, turn, out)
 
 
 def _indexed_points(X: np.ndarray, source: np.ndarray, turns: np.ndarray, periodic,
                     features: QueryFeatures, scale: np.ndarray, chunk: int = 1 << 16
                     ) -> np.ndarray:
     """The index's points (P, 2n - k): the scaled features of rows ``source`` of X moved by
-    ``turns`` (`_periodic_copies`), made a chunk of rows at a time, so that a plan's
-    start-up holds one array of them and no padded or unscaled copy."""
+    ``turns`` (`_periodic_copies`), made a chunk of rows at a time into one buffer, so that
+    a plan's start-up holds one array of them and no padded or unscaled copy."""
     out = np.empty((len(source), features.width))
+    buf = np.empty((min(chunk, len(source)), X.shape[1]))
     for a in range(0, len(source), chunk):
         part = slice(a, a + chunk)
-        out[part] = features.transform(_shifted_rows(X, source[part], turns[part],
-                                                     periodic)) * scale
+        rows = _shifted_rows(X, source[part], turns[part], periodic, buf)
+        np.multiply(features.transform(rows), scale, out=out[part])
     return out
 
 
