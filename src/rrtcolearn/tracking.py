@@ -52,9 +52,9 @@ from rrtcolearn.planning.lqr import bryson_weights, build_goal_lqr, input_box, s
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.systems.base import System
 
-__all__ = ["FLOOR_SAMPLES", "LADDER", "SELF_TEST", "Nominal", "NoiseFloor", "Rollouts",
-           "TrackingController", "check_truth", "input_box", "noise_floor", "nominal_trajectory",
-           "riccati_gains", "rollouts", "summarise", "tracking_weights"]
+__all__ = ["FLOOR_SAMPLES", "LADDER", "SELF_TEST", "NoiseFloor", "Nominal", "Rollouts",
+           "TrackingController", "check_truth", "input_box", "noise_floor",
+           "nominal_trajectory", "riccati_gains", "rollouts", "summarise", "tracking_weights"]
 
 LADDER = (1.0, 10.0, 100.0, 1000.0, 10000.0)
 """The multiples of Bryson's Q the self-test chooses among (`TrackingController.build`)."""
