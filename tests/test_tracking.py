@@ -15,8 +15,13 @@ from rrtcolearn import pipeline
 from rrtcolearn.errors import ConfigError
 from rrtcolearn.evaluate import sample_path
 from rrtcolearn.systems import make
-from rrtcolearn.tracking import (TrackingController, check_truth, noise_floor, riccati_gains,
-                                 rollouts)
+from rrtcolearn.tracking import (
+    TrackingController,
+    check_truth,
+    noise_floor,
+    riccati_gains,
+    rollouts,
+)
 
 
 @pytest.fixture(scope="module")
