@@ -311,6 +311,7 @@ def test_track_command_reports_open_loop_beside_tracked(limited_run, tmp_path):
     row = next(line for line in result.output.splitlines() if "inputs within the box" in line)
     assert row.count("True") == 2
     assert figure.stat().st_size > 10_000
+    assert "noise floor" in result.output and "within 2x 1.00" in result.output
     again = invoke(*args)
     table = [line for line in result.output.splitlines() if "│" in line]
     assert table == [line for line in again.output.splitlines() if "│" in line]
