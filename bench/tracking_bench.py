@@ -7,10 +7,8 @@ length 10% larger, inertias 1.1^3), with process noise ``--noise`` (a fraction o
 state's box width per sqrt(s)) and a start error within +- ``--start-error`` of the box width,
 seed 0: the same draws for both. One row for the default (the state weight the model's
 self-test picks, `tracking.LADDER`) and one per fixed weight of ``--weights`` (multiples of
-Bryson's Q: 1 is the goal LQR's rule, the default before the self-test). Each row also gives
-the noise floor on the true system (`tracking.noise_floor`: the shares within the tolerance
-and twice it that the best state feedback at the goal holds under this noise, whatever the
-plan or weights). Prints one line per row and, last, one JSON line.
+Bryson's Q: 1 is the goal LQR's rule, the default before the self-test). Prints one line per
+row and, last, one JSON line.
 
     python bench/tracking_bench.py [--rollouts 100] [--runs-dir runs/tracking]
                                    [--noise 0.001] [--start-error 0.01]
@@ -22,7 +20,6 @@ The issue's target: tracked within 2x the goal tolerance >= 95%, inputs always i
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import subprocess
 import sys
@@ -35,7 +32,7 @@ if str(ROOT) not in sys.path:  # examples/ (the true systems) from any working d
 
 import examples.heavier as heavier  # noqa: E402
 
-from rrtcolearn import evaluate, pipeline, tracking  # noqa: E402
+from rrtcolearn import pipeline, tracking  # noqa: E402
 
 # name, run directory, `rrtcolearn run` options, the true system; the cart-pole's and
 # acrobot's limits are 50% of the median max |u| of their unbounded plans (docs/systems.md)
@@ -72,12 +69,6 @@ def plan_file(runs: Path, directory: str, options: list[str], obstacle: bool) ->
     return target
 
 
-def _floor(floor: tracking.NoiseFloor | str) -> str:
-    if isinstance(floor, str):
-        return f"none ({floor})"
-    return f"rms {floor.rms:.3g}, reached / 2x {floor.reached:.2f} / {floor.reached_2x:.2f}"
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--rollouts", type=int, default=100)
@@ -92,10 +83,6 @@ def main() -> None:
         d = pipeline.read_plan(path)
         system = pipeline.plan_system(d)
         truth = truth_factory()
-        # what the noise alone allows on the true system, whatever the controller
-        floor = tracking.noise_floor(
-            dataclasses.replace(evaluate.plan_problem(system, d), system=truth),
-            float(d["dt"]), args.noise)
         fixed = [float(v) for v in args.weights.split(",") if v]
         for weight in (None, *fixed):
             cpu = time.process_time()
@@ -111,10 +98,7 @@ def main() -> None:
                    "rule": "self-test" if weight is None else "fixed",
                    "state_weight": c.state_weight,
                    "open_loop": ol, "tracked": tr, "cpu_s": round(cpu, 2),
-                   "terminal": c.terminal,
-                   "noise_floor": floor if isinstance(floor, str) else {
-                       "rms": round(floor.rms, 4), "reached": floor.reached,
-                       "reached_2x": floor.reached_2x}}
+                   "terminal": c.terminal}
             rows.append(row)
             rule = "auto" if weight is None else "fixed"
             print(f"{name:26s} {rule} w={c.state_weight:<5g} plan {d['status']:5s} "
@@ -125,8 +109,7 @@ def main() -> None:
                   f" TR {tr['final_error_median']:.3g} | at limit TR {tr['time_at_limit']:.2f}"
                   f" | in box {tr['inputs_in_box']} | obstacle entries OL "
                   f"{ol['obstacle_entries']} TR {tr['obstacle_entries']} | constraint exits "
-                  f"OL {ol['constraint_exits']} TR {tr['constraint_exits']} | noise floor "
-                  f"{_floor(floor)} | {cpu:.1f} CPU s",
+                  f"OL {ol['constraint_exits']} TR {tr['constraint_exits']} | {cpu:.1f} CPU s",
                   flush=True)
     print(json.dumps(rows))
 

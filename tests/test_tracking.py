@@ -15,13 +15,7 @@ from rrtcolearn import pipeline
 from rrtcolearn.errors import ConfigError
 from rrtcolearn.evaluate import sample_path
 from rrtcolearn.systems import make
-from rrtcolearn.tracking import (
-    TrackingController,
-    check_truth,
-    noise_floor,
-    riccati_gains,
-    rollouts,
-)
+from rrtcolearn.tracking import TrackingController, check_truth, riccati_gains, rollouts
 
 
 @pytest.fixture(scope="module")
@@ -218,47 +212,6 @@ def test_weights_are_brysons_times_the_factor_the_self_test_picks(controller):
     np.testing.assert_array_equal(picked.K, fixed[picked.state_weight].K)
 
 
-def test_noise_floor_against_a_regulator_written_here(controller):
-    """The pendulum's upright (theta'' = sin(theta) + u, `_pendulum`): its RK4 step
-    linearised here, the cheap-control regulator and the stationary covariance by scipy,
-    the shares by draws of another seed. Near the tolerance the shares are neither 0 nor 1,
-    so a wrong covariance or distance shows."""
-    from scipy.linalg import solve_discrete_are, solve_discrete_lyapunov
-
-    c, d = controller
-    dt = d["dt"]
-
-    def step(x, u):
-        k1 = _pendulum(x, u)
-        k2 = _pendulum(x + 0.5 * dt * k1, u)
-        k3 = _pendulum(x + 0.5 * dt * k2, u)
-        return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + _pendulum(x + dt * k3, u))
-
-    h = 1e-6
-    z = np.zeros(3)
-    J = np.column_stack([(step(*np.split(z + h * e, [2])) - step(*np.split(z - h * e, [2])))
-                         / (2 * h) for e in np.eye(3)])
-    A, B = J[:, :2], J[:, 2:]
-    P = solve_discrete_are(A, B, np.eye(2), np.array([[1e-9]]))
-    K = np.linalg.solve(1e-9 + B.T @ P @ B, B.T @ P @ A)
-    width = np.array([2 * np.pi, 2 * np.pi])  # a turn; omega's box [-pi, pi]
-    assert np.allclose(np.subtract(c.problem.state_high, c.problem.state_low)[1], width[1])
-    for noise in (1e-3, 0.05):
-        X = solve_discrete_lyapunov(A - B @ K, np.diag((noise * width) ** 2 * dt))
-        floor = noise_floor(c.problem, dt, noise)
-        np.testing.assert_allclose(floor.rms, np.sqrt(np.trace(X)), rtol=1e-4)
-        np.testing.assert_allclose(floor.std, np.sqrt(np.diag(X)), rtol=1e-4)
-    tol = c.problem.goal_tolerance
-    assert floor.rms > tol  # noise 0.05: the floor above the tolerance
-    draws = np.random.default_rng(123).multivariate_normal(np.zeros(2), X, 100_000)
-    dist = np.linalg.norm(draws, axis=1)
-    assert 0.05 < floor.reached < 0.95
-    assert abs(floor.reached - np.mean(dist <= tol)) < 0.01
-    assert abs(floor.reached_2x - np.mean(dist <= 2 * tol)) < 0.01
-    quiet = noise_floor(c.problem, dt, 0.0)
-    assert quiet.rms == 0.0 and quiet.reached == quiet.reached_2x == 1.0
-
-
 def test_tracking_corrects_a_start_error_open_loop_does_not(controller):
     c, _ = controller
     open_loop, tracked = rollouts(c, 20, start_error=0.01, noise=1e-3, seed=1)
@@ -311,7 +264,6 @@ def test_track_command_reports_open_loop_beside_tracked(limited_run, tmp_path):
     row = next(line for line in result.output.splitlines() if "inputs within the box" in line)
     assert row.count("True") == 2
     assert figure.stat().st_size > 10_000
-    assert "noise floor" in result.output and "within 2x 1.00" in result.output
     again = invoke(*args)
     table = [line for line in result.output.splitlines() if "│" in line]
     assert table == [line for line in again.output.splitlines() if "│" in line]

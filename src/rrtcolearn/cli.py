@@ -912,17 +912,6 @@ def track(
                            ("constraint_exits", "runs leaving the state constraints")):
             table.add_row(label, *(_figure(r[key]) for r in rows))
         out_console.print(table)
-        if noise > 0:
-            import dataclasses
-
-            floor = tracking.noise_floor(
-                c.problem if truth is None else dataclasses.replace(c.problem, system=truth),
-                c.nominal.dt, noise)
-            typer.echo(f"noise floor (the goal held by the best state feedback against this "
-                       f"noise): {floor}" if isinstance(floor, str) else
-                       f"noise floor (the goal held by the best state feedback against this "
-                       f"noise): within the tolerance {floor.reached:.2f}, within 2x "
-                       f"{floor.reached_2x:.2f}, rms distance {floor.rms:.3g}")
         if plot is not None:
             from rrtcolearn.animation import tracking_figure
             from rrtcolearn.plotting import save_figure

@@ -52,9 +52,9 @@ from rrtcolearn.planning.lqr import bryson_weights, build_goal_lqr, input_box, s
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.systems.base import System
 
-__all__ = ["FLOOR_SAMPLES", "LADDER", "SELF_TEST", "NoiseFloor", "Nominal", "Rollouts",
-           "TrackingController", "check_truth", "input_box", "noise_floor",
-           "nominal_trajectory", "riccati_gains", "rollouts", "summarise", "tracking_weights"]
+__all__ = ["LADDER", "SELF_TEST", "Nominal", "Rollouts", "TrackingController", "check_truth",
+           "input_box", "nominal_trajectory", "riccati_gains", "rollouts", "summarise",
+           "tracking_weights"]
 
 LADDER = (1.0, 10.0, 100.0, 1000.0, 10000.0)
 """The multiples of Bryson's Q the self-test chooses among (`TrackingController.build`)."""
@@ -263,14 +263,6 @@ class Rollouts:
     tracked: bool
 
 
-def _box_widths(system: System) -> np.ndarray:
-    """(n,) the widths noise and start errors are fractions of: the state box's, an angle's
-    a turn."""
-    width = np.asarray(system.state_high, float) - np.asarray(system.state_low, float)
-    width[list(system.angle_dims)] = 2.0 * np.pi
-    return width
-
-
 def _rk4_batch(f, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
     """One RK4 step of x' = f(x, u) for a batch x (N, n), with the stage inputs u (N, 4, m)."""
     k1 = f(x, u[:, 0])
@@ -293,7 +285,8 @@ def rollouts(controller: TrackingController, n: int = 100, *, truth: System | No
     truth = model if truth is None else truth
     check_truth(model, truth)
     nom = controller.nominal
-    width = _box_widths(model)
+    width = np.asarray(model.state_high, float) - np.asarray(model.state_low, float)
+    width[list(model.angle_dims)] = 2.0 * np.pi
     rng = np.random.default_rng(seed)
     x0 = nom.state[0] + rng.uniform(-1.0, 1.0, (n, model.n_states)) * start_error * width
     kicks = rng.standard_normal((nom.steps, n, model.n_states)) * (
@@ -317,74 +310,6 @@ def rollouts(controller: TrackingController, n: int = 100, *, truth: System | No
                 states[:, k + 1] = x
         out.append(Rollouts(states, inputs, tracked))
     return out[0], out[1]
-
-
-@dataclass(frozen=True)
-class NoiseFloor:
-    """How close to the goal process noise lets any state feedback hold the system
-    (`noise_floor`): ``rms`` the stationary root-mean-square goal distance, ``std`` (n,) each
-    coordinate's standard deviation, ``reached`` / ``reached_2x`` the share of states within
-    the goal tolerance / twice it."""
-
-    rms: float
-    std: np.ndarray
-    reached: float
-    reached_2x: float
-
-
-FLOOR_SAMPLES = 100_000
-"""Draws of the stationary distribution `noise_floor` counts the shares in (seed 0)."""
-
-
-def noise_floor(problem: PlanningProblem, dt: float, noise: float) -> NoiseFloor | str:
-    """The noise floor at the goal, or why there is none (a one-line reason): the least
-    stationary mean-square goal distance that state feedback acting every ``dt`` holds the
-    linearisation at the goal's equilibrium to, under the process noise of `rollouts`
-    (``noise`` x each box width per sqrt(s)), and the shares of that Gaussian within the
-    tolerance and twice it.
-
-    Why: near an unstable equilibrium the noise keeps moving the state, and an
-    underactuated system can only push back through its inputs' coupling; when the floor
-    lies above the goal tolerance no tracking weights, plan or controller at this step can
-    end every run in the goal region (the goal LQR's weights do no better: they are not the
-    goal's distance). How: the steady-state LQG regulator with the goal's own distance as
-    its cost (Q = diag(goal weights^2), R vanishing: cheap control) minimises the
-    stationary mean-square distance over all causal state feedback of the linear system
-    (the inputs unbounded: a box only raises the floor); its closed loop A - B K and the
-    noise covariance W give the covariance X = (A - B K) X (A - B K)' + W (the state just
-    after a step's noise)."""
-    from scipy.linalg import solve_discrete_are, solve_discrete_lyapunov
-
-    if problem.goal_fn is not None:
-        return "the goal region is a function, not a weighted ball"
-    system = problem.system
-    goal = build_goal_lqr(problem, dt, np.diag(_input_weight(system)))
-    if isinstance(goal, str):
-        return goal
-    A, B = step_jacobians(system, goal.x_e, goal.u_e, dt)
-    weights = np.ones(system.n_states) if problem.goal_weights is None else \
-        np.asarray(problem.goal_weights, dtype=np.float64)
-    Q = np.diag(weights**2)
-    # cheap control: R small against the inputs' effect, large enough for the solver
-    R = 1e-9 * max(float(np.abs(B.T @ Q @ B).max()), 1e-300) * np.eye(system.n_inputs)
-    try:
-        with np.errstate(all="ignore"):
-            P = solve_discrete_are(A, B, Q, R)
-            K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
-            W = np.diag((noise * _box_widths(system)) ** 2 * dt)
-            X = solve_discrete_lyapunov(A - B @ K, W)
-    except (ValueError, np.linalg.LinAlgError) as exc:
-        return f"no minimum-variance regulator at the goal ({exc})"
-    X = 0.5 * (X + X.T)
-    if not np.all(np.isfinite(X)):
-        return "no minimum-variance regulator at the goal"
-    # the shares by sampling: a Gaussian's mass in a ball has no closed form
-    L = np.linalg.cholesky(X + 1e-300 * np.eye(len(X))) if noise > 0 else np.zeros_like(X)
-    draws = np.random.default_rng(0).standard_normal((FLOOR_SAMPLES, len(X))) @ L.T
-    dist = np.linalg.norm(draws * weights, axis=1)
-    tol = problem.goal_tolerance
-    return NoiseFloor(float(np.sqrt(np.trace(Q @ X))), np.sqrt(np.clip(np.diag(X), 0.0, None)),
-                      float(np.mean(dist <= tol)), float(np.mean(dist <= 2.0 * tol)))
 
 
 class _WeakerInputs:
