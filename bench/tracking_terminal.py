@@ -1,5 +1,6 @@
-"""The tracking controller's terminal cost, measured: the goal LQR's Riccati solution (the
-default) against the goal test's own squared distance, per multiple of Bryson's Q.
+"""The tracking controller's terminal cost, measured: the goal test's own squared distance
+(the default, `tracking.terminal_cost`) against the goal LQR's Riccati solution (the default
+before), per multiple of Bryson's Q.
 
 For each problem of bench/tracking_bench.py (plans from ``--runs-dir``, made there if
 missing), the gains are recomputed with each terminal cost and each factor of
@@ -29,14 +30,7 @@ import numpy as np  # noqa: E402
 from bench.tracking_bench import OBSTACLE, PROBLEMS, plan_file  # noqa: E402
 
 from rrtcolearn import pipeline, tracking  # noqa: E402
-from rrtcolearn.planning.lqr import step_jacobians  # noqa: E402
-
-
-def goal_distance_weight(problem) -> np.ndarray:
-    """(n, n) diag(w^2): the goal test's squared distance (w the goal weights, 1 without)."""
-    w = np.ones(problem.system.n_states) if problem.goal_weights is None else \
-        np.asarray(problem.goal_weights, dtype=np.float64)
-    return np.diag(w**2)
+from rrtcolearn.planning.lqr import build_goal_lqr, step_jacobians  # noqa: E402
 
 
 def main() -> None:
@@ -58,8 +52,12 @@ def main() -> None:
                for x, u in zip(nom.state[:-1], nom.input[:-1], strict=True)]
         A, B = np.array([a for a, _ in jac]), np.array([b for _, b in jac])
         Q, R = tracking.tracking_weights(base.problem, dt)
-        terminals = {"goal LQR P (default)": base.P[-1],
-                     "diag(w^2)": goal_distance_weight(base.problem)}
+        # R / dt: the running cost's weight where an input is unbounded, all the goal LQR
+        # reads of it (as `TrackingController.build` passed it before)
+        goal = build_goal_lqr(base.problem, dt, np.diag(np.diag(R) / dt))
+        terminals = {"diag(w^2) (default)": tracking.terminal_cost(base.problem, dt)[0]}
+        if not isinstance(goal, str):
+            terminals["goal LQR P (before)"] = goal.P
         for label, P_final in terminals.items():
             for factor in tracking.LADDER:
                 cpu = time.process_time()
