@@ -200,8 +200,9 @@ def test_tracking_on_the_exact_model_reproduces_the_plan(controller):
 
 def test_weights_are_brysons_times_the_factor_the_self_test_picks(controller):
     """Q and R by hand for the pendulum at |u| <= 1 (angle: half a turn; omega in
-    [-pi, pi]; torque box half-width 1), and the self-test redone with a pendulum written
-    here whose torque acts at 0.9 of the model's."""
+    [-pi, pi]; torque box half-width 1), the terminal cost the goal test's squared
+    distance (the goal weights are 1: the identity), and the self-test redone with a
+    pendulum written here whose torque acts at 0.8 of the model's."""
     from rrtcolearn.planning.lqr import step_jacobians
     from rrtcolearn.tracking import SELF_TEST
 
@@ -213,24 +214,25 @@ def test_weights_are_brysons_times_the_factor_the_self_test_picks(controller):
            for x, u in zip(c.nominal.state[:-1], c.nominal.input[:-1], strict=True)]
     A, B = np.array([a for a, _ in jac]), np.array([b for _, b in jac])
     fixed = {w: TrackingController.build(system, d, ladder=(w,)) for w in (1.0, 1e4)}
+    np.testing.assert_array_equal(c.P[-1], np.eye(2))
     for w, f in fixed.items():
-        K, _ = riccati_gains(A, B, w * Q_hand, R_hand, c.P[-1])
+        K, _ = riccati_gains(A, B, w * Q_hand, R_hand, np.eye(2))
         np.testing.assert_allclose(f.K, K, rtol=1e-9, atol=1e-12)
         assert f.state_weight == w
     np.testing.assert_array_equal(
         TrackingController.build(system, d, ladder=(10.0,), state_weight=2.0).K,
         TrackingController.build(system, d, ladder=(20.0,)).K)
 
-    class WeakerPendulum:  # theta'' = sin(theta) + 0.9 u, written here
+    class WeakerPendulum:  # theta'' = sin(theta) + 0.8 u, written here
         state_names, input_names, angle_dims = ("theta", "omega"), ("torque",), (0,)
         name = "weaker"
         state_low, state_high = system.state_low, system.state_high
 
         @staticmethod
         def dynamics(x, u):
-            return np.column_stack([x[:, 1], np.sin(x[:, 0]) + 0.9 * u[:, 0]])
+            return np.column_stack([x[:, 1], np.sin(x[:, 0]) + 0.8 * u[:, 0]])
 
-    assert SELF_TEST["input_scale"] == 0.9
+    assert SELF_TEST["input_scale"] == 0.8
     scores = {}
     for w, f in fixed.items():
         _, runs = rollouts(f, SELF_TEST["runs"], truth=WeakerPendulum(),
