@@ -35,6 +35,7 @@ settings resumes from it), the table is printed last.
 
     PYTHONPATH=src python bench/ablation.py [--models DIR] [--out FILE] [--seeds 5]
         [--anytime-seeds 3] [--limit 60] [--anytime 10] [--problems a,b] [--modes a,b]
+        [--parent-cost-to-come]
     python bench/ablation.py --table docs/ablation.json
 """
 
@@ -207,12 +208,15 @@ def optimum(problem: Problem, planning, model) -> dict:
                      f"{s['interval_error']:.1g}")}
 
 
-def make_planner(planning, model, mode: str):
-    """The mode's planner, or None where the mode does not exist for the problem."""
+def make_planner(planning, model, mode: str, parent_cost_to_come: bool = False):
+    """The mode's planner, or None where the mode does not exist for the problem;
+    ``parent_cost_to_come``: that plan setting on (`PlannerSettings`)."""
     from rrtcolearn.errors import ConfigError
     from rrtcolearn.planning.rrt import RRTCoLearn
 
     settings = model.planner_settings()
+    if parent_cost_to_come:
+        settings = replace(settings, parent_cost_to_come=True)
     if mode == "learned":
         return RRTCoLearn(planning, model.functions, replace(settings, control_edges=False))
     if mode == "random":
@@ -263,6 +267,8 @@ def _write_json(path: Path, data) -> None:
 def run(args) -> dict:
     settings = {"seeds": args.seeds, "anytime_seeds": args.anytime_seeds,
                 "limit": args.limit, "anytime": args.anytime}
+    if args.parent_cost_to_come:  # (absent when off: older results files resume)
+        settings["parent_cost_to_come"] = True
     results = {"settings": settings, "problems": {}}
     if args.out.exists():
         old = json.loads(args.out.read_text())
@@ -279,7 +285,7 @@ def run(args) -> dict:
             entry["optimum"] = optimum(problem, planning, model)
             print(f"{name}: optimum {entry['optimum']}", flush=True)
         for mode in args.modes.split(","):
-            planner = make_planner(planning, model, mode)
+            planner = make_planner(planning, model, mode, args.parent_cost_to_come)
             rows = entry["modes"].setdefault(mode, {"first": {}, "anytime": {}})
             if planner is None:
                 rows["n/a"] = "no input box: random controls have nothing to draw from"
@@ -394,6 +400,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--anytime", type=float, default=10.0, help="process CPU s per query")
     ap.add_argument("--problems", default=",".join(PROBLEMS))
     ap.add_argument("--modes", default=",".join(MODES))
+    ap.add_argument("--parent-cost-to-come", action="store_true",
+                    help="plan.parent_cost_to_come on in every mode")
     ap.add_argument("--table", type=Path, default=None, metavar="JSON",
                     help="print the tables of a results file (docs/ablation.json); run nothing")
     args = ap.parse_args(argv)

@@ -41,3 +41,33 @@ def test_a_reference_pays_u_r_u_over_2_per_second_held():
     actions = np.array([[1.0, 0.0], [0.0, 3.0]])
     r = np.diag([2.0, 1.0])
     assert math.isclose(ablation.reference_cost(actions, 0.5, 2.0, r), 2.0 + 0.5 + 2.25)
+
+
+def test_cost_by_kind_splits_a_paths_cost_into_time_and_effort_per_kind():
+    """bench/cost_by_kind.py's split, by hand: w = 2; a learned edge (1 s, cost 5), a
+    random-control edge (0.5 s, cost 4), a funnel edge (2 s, cost 4.5), and a branch off
+    the path that must not count."""
+    from rrtcolearn.planning.tree import Plan, PlannerData
+
+    spec = importlib.util.spec_from_file_location(
+        "cost_by_kind", Path(__file__).parents[1] / "bench" / "cost_by_kind.py")
+    cost_by_kind = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cost_by_kind)
+    tree = PlannerData(np.zeros(2), 1, capacity=2)
+    lam, p = np.zeros(2), np.zeros(1)
+    nan2, nan1 = np.full(2, np.nan), np.full(1, np.nan)
+    tree.add(np.ones(2), 0, lam, p, 1.0, 5.0, np.zeros((2, 2)), 0.7)  # 1: learned
+    tree.add(np.ones(2), 1, nan2, nan1, 0.5, 4.0, np.zeros((2, 2)), 1.2,
+             control=np.array([1.2]))  # 2: control
+    tree.add(np.ones(2), 0, nan2, nan1, 9.0, 99.0, np.zeros((2, 2)), 9.0,
+             control=np.array([9.0]))  # 3: off the path
+    tree.add(np.ones(2), 2, lam, p, 2.0, 4.5, np.zeros((2, 2)), 0.3)  # 4: funnel
+    tree.made_by[4] = "funnel"
+    plan = Plan("pendulum", np.zeros(2), np.ones(2), 0.1, 2.0, 0.01, "exact", 0.0, 0.0, 1,
+                tree, [0, 1, 2, 4])
+    rows = cost_by_kind.cost_by_kind(plan, 2.0)
+    assert rows == {
+        "learned": {"edges": 1, "duration": 1.0, "time": 2.0, "effort": 3.0, "max_abs_u": 0.7},
+        "control": {"edges": 1, "duration": 0.5, "time": 1.0, "effort": 3.0, "max_abs_u": 1.2},
+        "funnel": {"edges": 1, "duration": 2.0, "time": 4.0, "effort": 0.5, "max_abs_u": 0.3}}
+    assert math.isclose(sum(r["time"] + r["effort"] for r in rows.values()), plan.path_cost)

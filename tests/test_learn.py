@@ -218,8 +218,10 @@ def _brute_best(valid: np.ndarray, J: np.ndarray) -> int:
     return int(np.flatnonzero(valid & (J == J[valid].min()))[0])
 
 
-@pytest.mark.parametrize("periodic", [False, True])
-def test_best_valid_knn_is_the_brute_force_argmin(periodic):
+@pytest.mark.parametrize(("periodic", "offset"), [(False, False), (True, False), (True, True)])
+def test_best_valid_knn_is_the_brute_force_argmin(periodic, offset):
+    """``offset`` (RRT*'s choose-parent, a parent's cost-to-come per row): the least J plus
+    it; integer offsets, so that ties still occur."""
     from rrtcolearn.learn.models import best_valid
     from rrtcolearn.systems import make
 
@@ -235,23 +237,27 @@ def test_best_valid_knn_is_the_brute_force_argmin(periodic):
         rows, dist = _brute_neighbours(data, X, m, periodic)
         valid = dist.sum(axis=1) <= threshold
         J = np.clip(data.cost[rows].mean(axis=1), *bounds)
-        want = _brute_best(valid, J)
-        row, neighbours = best_valid(f, X)
+        extra = rng.integers(0, 3, len(X)).astype(float) if offset else None
+        want = _brute_best(valid, J if extra is None else J + extra)
+        row, neighbours = best_valid(f, X, extra)
         assert row == want
         if want < 0:
             assert neighbours is None
             continue
         found += 1
-        ties += int((valid & (J == J[want])).sum() > 1)
+        total = J if extra is None else J + extra
+        ties += int((valid & (total == total[want])).sum() > 1)
         # the neighbours handed to U are the brute-force ones (as data rows)
         assert sorted(f.source_[neighbours].tolist()) == sorted(rows[want].tolist())
     assert found >= 50 and ties >= 10  # both outcomes and the tie rule were exercised
 
 
 @pytest.mark.filterwarnings("ignore:Got `batch_size`:UserWarning")  # 150 rows: one batch
-def test_best_valid_network_branch_is_the_brute_force_argmin():
+@pytest.mark.parametrize("offset", [False, True])
+def test_best_valid_network_branch_is_the_brute_force_argmin(offset):
     """The networks' J (their forward pass written out here from their weights: standardise,
-    relu layers, undo the standardisation, exp of the log cost, clip) and brute-force V."""
+    relu layers, undo the standardisation, exp of the log cost, clip) and brute-force V;
+    ``offset``: the least J plus a per-row offset (a parent's cost-to-come)."""
     from rrtcolearn.learn.models import best_valid
     from rrtcolearn.systems import make
 
@@ -276,9 +282,10 @@ def test_best_valid_network_branch_is_the_brute_force_argmin():
         X = _queries(rng, data, centres, int(rng.integers(1, 25)))
         _, dist = _brute_neighbours(data, X, m, True)
         valid = dist.sum(axis=1) <= threshold
-        J = network_cost(X)
+        extra = rng.uniform(0.0, 3.0, len(X)) if offset else None
+        J = network_cost(X) if extra is None else network_cost(X) + extra
         want = _brute_best(valid, J)
-        row, neighbours = best_valid(f, X)
+        row, neighbours = best_valid(f, X, extra)
         assert neighbours is None
         if want < 0:
             assert row == -1

@@ -145,3 +145,63 @@ def test_each_steering_strategy_alone(limited):
             tree.add(parent, edge)
             made[steering.kind] += 1
     assert made["learned"] > 0 and made["control"] > 0
+
+
+def test_cost_to_come_by_hand():
+    """`PlannerData.cost_to_come`: each node's sum of edge costs from the root, by hand on a
+    branching tree, extended after nodes are added past a first call."""
+    from rrtcolearn.planning.tree import PlannerData
+
+    tree = PlannerData(np.zeros(2), 1, capacity=2)
+    nan2, nan1 = np.full(2, np.nan), np.full(1, np.nan)
+    for parent, cost in ((0, 1.5), (0, 2.0), (1, 0.25)):  # nodes 1, 2, 3
+        tree.add(np.zeros(2), parent, nan2, nan1, 1.0, cost, np.zeros((2, 2)), 0.0)
+    np.testing.assert_array_equal(tree.cost_to_come(np.array([3, 0, 2, 1])),
+                                  [1.75, 0.0, 2.0, 1.5])
+    for parent, cost in ((3, 4.0), (2, 0.5), (4, 1.0)):  # nodes 4, 5, 6 (the arrays grow)
+        tree.add(np.zeros(2), parent, nan2, nan1, 1.0, cost, np.zeros((2, 2)), 0.0)
+    np.testing.assert_array_equal(tree.cost_to_come(np.arange(7)),
+                                  [0.0, 1.5, 2.0, 1.75, 5.75, 2.5, 6.75])
+
+
+@pytest.mark.parametrize("on", [False, True])
+def test_parent_cost_to_come_ranks_by_the_trees_cost_to_come(limited, monkeypatch, on):
+    """With ``plan.parent_cost_to_come`` the learned steering ranks its candidates by J plus
+    each candidate's cost-to-come, as the tree has it (checked against sums of edge costs
+    along `path_to` on the final tree, whose edges do not change); without it, by J alone
+    (no offset). The ranking itself is `best_valid`'s (tests/test_learn.py)."""
+    import rrtcolearn.planning.learned as learned
+    from rrtcolearn.planning.tree import PlannerData
+
+    given, made = [], []
+    real_best, real_ctc = learned.best_valid, PlannerData.cost_to_come
+
+    def best_valid(functions, X, offset=None):
+        given.append((X.copy(), offset))
+        return real_best(functions, X, offset)
+
+    def cost_to_come(self, nodes):
+        out = real_ctc(self, nodes)
+        made.append((self, nodes.copy(), out))
+        return out
+
+    monkeypatch.setattr(learned, "best_valid", best_valid)
+    monkeypatch.setattr(PlannerData, "cost_to_come", cost_to_come)
+    plan = _planner(limited, parent_cost_to_come=on, control_edges=False).solve(
+        TerminationCondition(None, 300), 3)
+    assert len(given) > 50
+    if not on:
+        assert all(o is None for _, o in given) and not made
+        return
+    assert len(made) == len(given)
+    tree, n = plan.tree, limited.system.n_states
+    for (X, offset), (data, nodes, out) in zip(given, made, strict=True):
+        assert offset is out and data is tree
+        # the offsets are the query rows' own start nodes (their states, whole turns apart)
+        gap = X[:, :n] - tree.states[nodes]
+        np.testing.assert_allclose(np.mod(gap[:, 0] + np.pi, 2 * np.pi) - np.pi, 0.0,
+                                   atol=1e-9)
+        np.testing.assert_allclose(gap[:, 1:], 0.0, atol=1e-12)
+        want = [sum(tree.costs[i] for i in tree.path_to(int(k))[1:]) for k in nodes]
+        np.testing.assert_allclose(out, want, rtol=1e-12)
+    assert max(float(o.max()) for _, o in given if o.size) > 0.0  # nodes below the root

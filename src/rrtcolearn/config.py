@@ -332,6 +332,11 @@ class PlanConfig(_Section):
         "make a learned edge that came halfway to its aim land on it; 0: off, the paper's "
         "planner. 6 lowered the pendulum's first-path cost by 7% at 1.25-1.5x its planning "
         "CPU on the paper's model (docs/landing.md)")
+    parent_cost_to_come: bool = Field(
+        False, description="the learned steering's parent: the candidate with the least "
+        "cost-to-come plus predicted J to the target (RRT*'s choose-parent) instead of the "
+        "least J alone (the paper's); cheaper first paths where learned edges carry them, "
+        "slower where random controls do (docs/ablation.md)")
     max_candidates: int | None = Field(
         32, ge=1, description="query J for only this many nodes nearest the target "
         "(weighted distance, from the tree's nearest-neighbour index), so an iteration's "

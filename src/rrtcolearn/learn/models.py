@@ -651,10 +651,12 @@ class LearnedFunctions:
         return rows, self._answers.cost(F[rows], dist, idx), idx
 
 
-def best_valid(functions: LearnedFunctions, X: np.ndarray) -> tuple[int, np.ndarray | None]:
+def best_valid(functions: LearnedFunctions, X: np.ndarray, offset: np.ndarray | None = None
+               ) -> tuple[int, np.ndarray | None]:
     """The row of X (Q, 2n) that V accepts with the least J (the first such row among
     equal J) and its neighbour indices (m,) for `LearnedFunctions.steer`; (-1, None) when V
-    accepts none. The row `query_valid`'s least J picks.
+    accepts none. The row `query_valid`'s least J picks. ``offset`` (Q,): rank by J plus
+    it instead (a parent's cost-to-come: RRT*'s choose-parent).
 
     With the networks' J it is found without V's answer for every row: J of every row
     the coverage prefilter keeps (row by row, `NeuralRegressor.predict_plain`), then V on
@@ -666,7 +668,7 @@ def best_valid(functions: LearnedFunctions, X: np.ndarray) -> tuple[int, np.ndar
         rows, cost, idx = functions.query_valid(X)
         if rows.size == 0:
             return -1, None
-        best = int(np.argmin(cost))
+        best = int(np.argmin(cost if offset is None else cost + offset[rows]))
         return int(rows[best]), idx[best]
     F = functions.features_.transform(X)
     Xs = F * functions.input_scale_
@@ -674,6 +676,8 @@ def best_valid(functions: LearnedFunctions, X: np.ndarray) -> tuple[int, np.ndar
     if rows.size == 0:
         return -1, None
     cost = answers.cost_rows(F[rows])
+    if offset is not None:
+        cost = cost + offset[rows]
     order = rows[np.argsort(cost, kind="stable")]
     v = functions.validity_
     return v.index_.first_valid(Xs, order, v.n_neighbors, v.threshold), None

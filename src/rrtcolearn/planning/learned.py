@@ -68,6 +68,7 @@ class LearnedSteering:
 
     Settings it reads (`settings.PlannerSettings`, "learned steering"): ``sigma``,
     ``sigma_goal``, ``decimals``, ``control_samples``, ``max_candidates``,
+    ``parent_cost_to_come``,
     ``extend_distance``, ``max_resample``, ``data_reach`` (through ``reach``), and the
     duration's bounds ``dt`` and ``max_duration``.
     """
@@ -264,9 +265,10 @@ class LearnedSteering:
 
     def propose(self, rng: np.random.Generator, tree: GrowingTree, target: np.ndarray,
                 to_goal: bool) -> tuple[int, Edge | None, np.ndarray]:
-        """Alg. 1's expansion: the parent with the least predicted J among the valid queries,
-        steered by U. (parent, edge); the edge is None (and ``rejected`` says why) when no
-        node is within reach, V rejects every query or no draw gives an edge."""
+        """Alg. 1's expansion: the parent with the least predicted J among the valid queries
+        (with ``parent_cost_to_come``: the least cost-to-come plus J), steered by U.
+        (parent, edge); the edge is None (and ``rejected`` says why) when no node is within
+        reach, V rejects every query or no draw gives an edge."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         states, weight, wrapped = tree.states, tree.weight, tree.wrapped
         lam, z0, reach2 = self._lam, self._z0, self.reach * self.reach
@@ -296,7 +298,8 @@ class LearnedSteering:
             aims = aims[within][order]
         sh = tree.shifts[near]
         query = np.concatenate([states[near] + sh, aims + sh], axis=1)
-        row, neighbours = best_valid(self.model, query)
+        row, neighbours = best_valid(self.model, query, tree.data.cost_to_come(near)
+                                     if s.parent_cost_to_come else None)
         if row < 0:
             self.propagator.rejected = "invalid_query"
             return none

@@ -67,6 +67,7 @@ class PlannerSettings:
     # Newton iterations on the steering parameters that make a learned edge land where it was
     # aimed (`learned.LearnedSteering.refine`); 0 off
     refine_iterations: int = _default(PlanConfig, "refine_iterations")
+    parent_cost_to_come: bool = _default(PlanConfig, "parent_cost_to_come")
     # random controls (`controls`; when they switch on: `schedule`)
     control_edges: bool | None = _default(PlanConfig, "control_edges")
     # the goal connections (`connections`; when they switch on: `schedule`); connect_reach

@@ -37,6 +37,7 @@ class PlannerData:
         # the strategy that made a node's edge where it is not told by the edge itself (a
         # goal connection's, a shortcut's): `kind`
         self.made_by: dict[int, str] = {}
+        self._cost_to_come = np.zeros(0)  # `cost_to_come`'s rows so far
         self.add(root, -1, np.full(n, np.nan), np.full(n_params, np.nan), 0.0, 0.0, root[None],
                  0.0)
 
@@ -80,6 +81,21 @@ class PlannerData:
         if i in self.made_by:
             return self.made_by[i]
         return "control" if np.isnan(self.costates[i]).any() else "learned"
+
+    def cost_to_come(self, nodes: np.ndarray) -> np.ndarray:
+        """(k,) the cost of the tree's path from the root to each of ``nodes`` (k,): the sum
+        of its edges' ``costs``. Kept for every node so far and extended by the nodes added
+        since (a parent precedes its children, and an edge is not changed once the next
+        call has seen it)."""
+        done, total = len(self._cost_to_come), self.n_nodes
+        if done < total:
+            ctc = np.empty(total)
+            ctc[:done] = self._cost_to_come
+            parents, costs = self.parents[:total].tolist(), self.costs[:total].tolist()
+            for i in range(done, total):  # sequential: a child's sum needs its parent's
+                ctc[i] = 0.0 if parents[i] < 0 else ctc[parents[i]] + costs[i]
+            self._cost_to_come = ctc
+        return self._cost_to_come[nodes]
 
     def path_to(self, node: int) -> list[int]:
         """Node indices from the root to ``node``."""
