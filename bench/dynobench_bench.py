@@ -175,11 +175,11 @@ def main() -> None:
     problems = [p for p in args.problems.split(",") if p] or db.shipped_problems(
         tuple(m for m in args.models.split(",") if m))
     report = {"tolerance": TOLERANCE, "seeds": args.seeds, "time_limit_cpu_s": args.time_limit,
-              "w": {}, "offline_cpu_s": {}, "problems": {}}
+              "wall_factor": args.wall_factor, "w": {}, "offline_cpu_s": {}, "problems": {}}
     if args.out.is_file():
         old = json.loads(args.out.read_text())
         if (old.get("seeds"), old.get("time_limit_cpu_s")) == (args.seeds, args.time_limit):
-            report = old
+            report = old | {"wall_factor": args.wall_factor}
     models, all_states = {}, {}
     for name in problems:
         read = db.read_problem(name)
@@ -217,7 +217,8 @@ def main() -> None:
 def merge(reports: list[dict]) -> dict:
     """Several runs' results as one (each problem from the last report holding it)."""
     out = {"tolerance": TOLERANCE, "w": {}, "offline_cpu_s": {}, "problems": {},
-           "collision_cost": {}, "runs": [(r["seeds"], r["time_limit_cpu_s"]) for r in reports]}
+           "collision_cost": {}, "runs": [(r["seeds"], r["time_limit_cpu_s"]) for r in reports],
+           "wall_factors": sorted({r.get("wall_factor") or 0 for r in reports})}
     for r in reports:
         for key in ("w", "offline_cpu_s", "problems", "collision_cost"):
             out[key].update(r.get(key) or {})
@@ -240,10 +241,12 @@ def _ratio(a, b) -> str:
 def print_tables(report: dict) -> None:
     w = ", ".join(f"{r} {v:g}" for r, v in report["w"].items())
     runs = report.get("runs", [(report.get("seeds"), report.get("time_limit_cpu_s"))])
+    factors = report.get("wall_factors", [report.get("wall_factor") or 0])
+    cap = (" or ".join(f"{f:g}" for f in factors if f) or "the --wall-factor")
     print(f"\nw: {w}; goal tolerance {report['tolerance']} (weighted, angles wrapped); "
           f"(seeds, CPU limit s): {runs}; references timed by dynobench's authors on another "
           "machine; 'unsolved CPU' is the CPU the unsolved seeds got before the limit or "
-          "the wall cap (3 x the limit) stopped them")
+          f"the wall cap ({cap} x the limit) stopped them")
     print("| problem | body | solved | CPU median s | duration median s | iDb-A* duration s "
           "/ time s | RRT+TO duration s | duration / iDb-A*'s | CPU / iDb-A*'s time | "
           "duration / RRT+TO's | dynobench: in collision (exported; RK4 steps) | replays "
