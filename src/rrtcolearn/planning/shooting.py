@@ -28,6 +28,38 @@ _STEP_SIZES = (1.0, 0.5, 0.25, 0.1)  # backtracking line search, evaluated in on
 _LAND_STEP_SIZES = (1.0, 0.5, 0.25, 0.1, 0.03, 0.01)  # `land`'s
 
 
+def _norm(a: np.ndarray) -> np.ndarray | float:
+    """Euclidean norm along the last axis by elementwise squares and numpy's own sum, not
+    BLAS's dot (`np.linalg.norm`): the same bits on every CPU, whatever kernel BLAS picks."""
+    with np.errstate(all="ignore"):
+        out = np.sqrt(np.sum(a * a, axis=-1))
+    return float(out) if out.ndim == 0 else out
+
+
+def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """x with a x = b for a small square ``a``: Gaussian elimination with partial pivoting in
+    elementwise operations, so that a Newton step (and the tree it grows) has the same bits on
+    every CPU; LAPACK's least squares (`np.linalg.lstsq`, whose result depends on the BLAS
+    kernel the CPU selects) only where a pivot vanishes (``a`` singular to working precision)."""
+    m = np.hstack([a, b[:, None]]).astype(np.float64)
+    n = len(b)
+    scale = float(np.max(np.abs(a))) if a.size else 0.0
+    for k in range(n):
+        p = k + int(np.argmax(np.abs(m[k:, k])))
+        if not abs(m[p, k]) > 1e-13 * scale:
+            return np.linalg.lstsq(a, b, rcond=None)[0]
+        if p != k:
+            m[[k, p]] = m[[p, k]]
+        m[k + 1:] -= (m[k + 1:, k] / m[k, k])[:, None] * m[k]
+    x = np.zeros(n)
+    for k in range(n - 1, -1, -1):
+        acc = m[k, n]
+        for j in range(k + 1, n):
+            acc -= m[k, j] * x[j]
+        x[k] = acc / m[k, k]
+    return x
+
+
 @dataclass(frozen=True)
 class ShootingResult:
     """Steering parameters (k,) and duration (a whole number of RK4 steps) whose edge ends
@@ -99,11 +131,11 @@ def newton(system: System, x0: np.ndarray, lam0: np.ndarray, duration0: float,
             return np.hstack([offset(z[:, :n]), hs[:, None]]), rate, z
 
     r, rate, z = (a[0] for a in residual(v[None]))
-    norm = float(np.linalg.norm(r))
+    norm = float(_norm(r))
     for it in range(max_iterations + 1):
         if not np.isfinite(norm):
             return None
-        state_norm = float(np.linalg.norm(r[:n]))
+        state_norm = float(_norm(r[:n]))
         if state_norm <= tolerance and abs(r[n]) <= 1e-9 * (1 + abs(w)):
             return v, z, state_norm, it
         if it == max_iterations:
@@ -123,18 +155,18 @@ def newton(system: System, x0: np.ndarray, lam0: np.ndarray, duration0: float,
         jac[n, n] = 0.0
         if not np.isfinite(jac).all():
             return None
-        step = np.linalg.lstsq(jac, -r, rcond=None)[0]
+        step = _solve(jac, -r)
         # trust region: the costate may change by at most its size (or 1), the duration by
         # half of itself (or 0.2 s); then a backtracking line search, evaluated in one batch
-        shrink = max(1.0, float(np.linalg.norm(step[:n]))
-                     / max(1.0, float(np.linalg.norm(v[:n]))),
+        shrink = max(1.0, float(_norm(step[:n]))
+                     / max(1.0, float(_norm(v[:n]))),
                      abs(step[n]) / max(0.2, 0.5 * v[-1]))
         step = step / shrink
         cand = v[None] + np.asarray(_STEP_SIZES)[:, None] * step[None]
         cand[:, -1] = np.clip(cand[:, -1], h, max_duration)
         rc, ratec, zc = residual(cand)
         with np.errstate(all="ignore"):
-            norms = np.linalg.norm(rc, axis=1)
+            norms = _norm(rc)
         norms[~np.isfinite(norms)] = np.inf
         best = int(np.argmin(norms))
         if not norms[best] < norm:
@@ -195,7 +227,7 @@ def land(system: System, x0: np.ndarray, lam0: np.ndarray, steps: int, target: n
 
     r = ends(lam[None])[0]
     for _ in range(max_iterations + 1):
-        norm = float(np.linalg.norm(r))
+        norm = float(_norm(r))
         if not np.isfinite(norm):
             return None
         if norm <= tolerance:
@@ -214,10 +246,10 @@ def land(system: System, x0: np.ndarray, lam0: np.ndarray, steps: int, target: n
         # Newton crawled (on seed 0 of its k-NN model: 2 of 14 converged shots landed, and
         # 10 were lost behind the miss; this way none were lost)
         cand = lam[None] + np.asarray(_LAND_STEP_SIZES)[:, None] * \
-            np.linalg.lstsq(jac, -r, rcond=None)[0][None]
+            _solve(jac, -r)[None]
         rc = ends(cand)
         with np.errstate(all="ignore"):
-            norms = np.linalg.norm(rc, axis=1)
+            norms = _norm(rc)
         descends = np.flatnonzero(norms < norm)  # NaN rows compare False
         if not descends.size:
             return None
