@@ -21,13 +21,12 @@ What, for any `System` and any plan (nothing here depends on a system's name):
   (`input_room_weights`: g_j the distance from the nominal input to the bound it pushes
   toward, time-varying), Q multiplied by the factor of `LADDER`: the rule and factor
   (`INPUT_RULES` x `LADDER`) a self-test on the plan's own model picks: with every input 20%
-  weaker than modelled
-  and the model's clock as it is, 5% and 10% slower (x' = s f(x, 0.8 u), `SELF_TEST`; a
-  margin for a robot that is heavier or weaker than its model, which the user does not
-  have), process noise and a start error, the factor whose runs end within twice the goal
-  tolerance most often over the three, ties to the smallest geometric mean of their median
-  final errors. Bryson's rule alone is soft for a tolerance well under the boxes (0.1
-  against half a turn); stiffer gains saturate a plan that rides its input bound and the
+  weaker than modelled and the model's clock as it is, 5% and 10% slower (x' = s f(x, 0.8
+  u), `SELF_TEST`; a margin for a robot that is heavier or weaker than its model, which the
+  user does not have), process noise and a start error, the pair whose runs end within
+  twice the goal tolerance most often over the three, ties to the smallest geometric mean
+  of their median final errors. Bryson's rule alone is soft for a tolerance well under the
+  boxes (0.1 against half a turn); stiffer gains saturate a plan that rides its input bound and the
   clipped loop can go unstable: the self-test sees both, on the model. A heavier or weaker
   robot needs more input where the plan pushes hard, in the direction it pushes: the room
   rule keeps the corrections out of the steps that leave little room;
