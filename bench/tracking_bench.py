@@ -6,8 +6,9 @@ tracked (`rrtcolearn.tracking`) on the "true" system of examples/heavier.py (eve
 length 10% larger, inertias 1.1^3), with process noise ``--noise`` (a fraction of each
 state's box width per sqrt(s)) and a start error within +- ``--start-error`` of the box width,
 seed 0: the same draws for both. One row for the default (the state weight the model's
-self-test picks, `tracking.LADDER`) and one per fixed weight of ``--weights`` (multiples of
-Bryson's Q: 1 is the goal LQR's rule, the default before the self-test). Prints one line per
+self-test picks, `tracking.LADDER`, with the input rule it picks, `tracking.INPUT_RULES`)
+and one per fixed weight of ``--weights`` (multiples of Bryson's Q, with Bryson's R from the
+input box: 1 is the goal LQR's rule, the default before the self-test). Prints one line per
 row and, last, one JSON line.
 
     python bench/tracking_bench.py [--rollouts 100] [--runs-dir runs/tracking]
@@ -88,7 +89,7 @@ def main() -> None:
             cpu = time.process_time()
             c = (tracking.TrackingController.build(system, d) if weight is None else
                  tracking.TrackingController.build(system, d, state_weight=weight,
-                                                   ladder=(1.0,)))
+                                                   ladder=(1.0,), input_rules=("box",)))
             runs = tracking.rollouts(c, args.rollouts, truth=truth, noise=args.noise,
                                      start_error=args.start_error, seed=0)
             ol, tr = (tracking.summarise(c, r) for r in runs)
@@ -96,12 +97,13 @@ def main() -> None:
             row = {"problem": name, "plan_status": d["status"], "edges": len(d["path"]),
                    "duration_s": round(c.nominal.t[-1], 3),
                    "rule": "self-test" if weight is None else "fixed",
-                   "state_weight": c.state_weight,
+                   "state_weight": c.state_weight, "input_rule": c.input_rule,
                    "open_loop": ol, "tracked": tr, "cpu_s": round(cpu, 2),
                    "terminal": c.terminal}
             rows.append(row)
             rule = "auto" if weight is None else "fixed"
-            print(f"{name:26s} {rule} w={c.state_weight:<5g} plan {d['status']:5s} "
+            print(f"{name:26s} {rule} w={c.state_weight:<5g} R {c.input_rule:4s} "
+                  f"plan {d['status']:5s} "
                   f"{len(d['path']):3d} edges"
                   f" {c.nominal.t[-1]:5.2f} s | reached / 2x: open-loop {ol['reached']:.2f}"
                   f" / {ol['reached_2x']:.2f}, tracked {tr['reached']:.2f} / "

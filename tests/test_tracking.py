@@ -179,6 +179,9 @@ def test_riccati_recursion_converges_to_the_dare():
     np.testing.assert_allclose(P[0], P_inf, rtol=1e-8)
     np.testing.assert_allclose(K[0], K_inf, rtol=1e-8)
     assert not np.allclose(P[-2], P_inf, rtol=1e-3)  # the end feels the terminal cost
+    K_steps, _ = riccati_gains(np.repeat(a[None], N, 0), np.repeat(b[None], N, 0), Q,
+                               np.repeat(R[None], N, 0), np.eye(2))  # R given per step
+    np.testing.assert_array_equal(K_steps, K)
 
 
 @pytest.fixture(scope="module")
@@ -200,8 +203,9 @@ def test_tracking_on_the_exact_model_reproduces_the_plan(controller):
 
 def test_weights_are_brysons_times_the_factor_the_self_test_picks(controller):
     """Q and R by hand for the pendulum at |u| <= 1 (angle: half a turn; omega in
-    [-pi, pi]; torque box half-width 1), the terminal cost the goal test's squared
-    distance (the goal weights are 1: the identity), and the self-test redone with a
+    [-pi, pi]; torque box half-width 1; the room rule: the distance of each step's stage
+    inputs to the bound they push toward, at least 0.3), the terminal cost the goal test's
+    squared distance (the goal weights are 1: the identity), and the self-test redone with a
     pendulum written here whose torque acts at 0.8 of the model's, on its clock and on one 5%
     and one 10% slower."""
     from rrtcolearn.planning.lqr import step_jacobians
@@ -214,15 +218,23 @@ def test_weights_are_brysons_times_the_factor_the_self_test_picks(controller):
     jac = [step_jacobians(system, x, u, dt)
            for x, u in zip(c.nominal.state[:-1], c.nominal.input[:-1], strict=True)]
     A, B = np.array([a for a, _ in jac]), np.array([b for _, b in jac])
-    fixed = {w: TrackingController.build(system, d, ladder=(w,)) for w in (1.0, 1e4)}
+    u = c.nominal.stage_inputs[:, :, 0]
+    room = np.maximum(np.where(u >= 0, 1.0 - u, u + 1.0).min(axis=1), 0.3)
+    assert room.min() == 0.3 and room.max() > 0.9  # the plan rides its bound and leaves it
+    R_room = (dt / room**2)[:, None, None]
+    fixed = {(rule, w): TrackingController.build(system, d, ladder=(w,), input_rules=(rule,))
+             for rule in ("box", "room") for w in (1.0, 1e4)}
     np.testing.assert_array_equal(c.P[-1], np.eye(2))
-    for w, f in fixed.items():
-        K, _ = riccati_gains(A, B, w * Q_hand, R_hand, np.eye(2))
+    for (rule, w), f in fixed.items():
+        K, _ = riccati_gains(A, B, w * Q_hand, R_hand if rule == "box" else R_room, np.eye(2))
         np.testing.assert_allclose(f.K, K, rtol=1e-9, atol=1e-12)
-        assert f.state_weight == w
+        assert (f.input_rule, f.state_weight) == (rule, w)
     np.testing.assert_array_equal(
-        TrackingController.build(system, d, ladder=(10.0,), state_weight=2.0).K,
-        TrackingController.build(system, d, ladder=(20.0,)).K)
+        TrackingController.build(system, d, ladder=(10.0,), state_weight=2.0,
+                                 input_rules=("box",)).K,
+        TrackingController.build(system, d, ladder=(20.0,), input_rules=("box",)).K)
+    with pytest.raises(ConfigError, match="input rules"):
+        TrackingController.build(system, d, ladder=(1.0,), input_rules=("bryson",))
 
     class SlowerWeakerPendulum:  # s (omega, sin(theta) + 0.8 u), written here
         state_names, input_names, angle_dims = ("theta", "omega"), ("torque",), (0,)
@@ -247,10 +259,10 @@ def test_weights_are_brysons_times_the_factor_the_self_test_picks(controller):
             shares.append(np.mean(dist <= 2 * d["goal_tolerance"]))
             medians.append(np.median(dist))
         scores[w] = (-np.mean(shares), np.prod(medians) ** (1 / 3))
-    assert scores[1.0] != scores[1e4]
+    assert len(set(scores.values())) > 1
     picked = TrackingController.build(system, d, ladder=(1.0, 1e4))
-    assert picked.state_weight == min(scores, key=scores.get)
-    np.testing.assert_array_equal(picked.K, fixed[picked.state_weight].K)
+    assert (picked.input_rule, picked.state_weight) == min(scores, key=scores.get)
+    np.testing.assert_array_equal(picked.K, fixed[picked.input_rule, picked.state_weight].K)
 
 
 def test_tracking_corrects_a_start_error_open_loop_does_not(controller):

@@ -17,15 +17,19 @@ What, for any `System` and any plan (nothing here depends on a system's name):
 * the weights: Bryson's rule from the problem's boxes, as the goal LQR states it
   (`planning.lqr`): Q_ii = dt / h_i^2 with h_i the state constraint box's half-width (an
   angle's: half a turn), R_jj = dt / g_j^2 with g_j the input box's half-width (the running
-  cost's R_jj where an input has no finite limit), Q multiplied by the factor of `LADDER`
-  that a self-test on the plan's own model picks: with every input 20% weaker than modelled
-  and the model's clock as it is, 5% and 10% slower (x' = s f(x, 0.8 u), `SELF_TEST`; a
-  margin for a robot that is heavier or weaker than its model, which the user does not
-  have), process noise and a start error, the factor whose runs end within twice the goal
-  tolerance most often over the three, ties to the smallest geometric mean of their median
-  final errors. Bryson's rule alone is soft for a tolerance well under the boxes (0.1
-  against half a turn); stiffer gains saturate a plan that rides its input bound and the
-  clipped loop can go unstable: the self-test sees both, on the model;
+  cost's R_jj where an input has no finite limit), or R from the room the nominal leaves
+  (`input_room_weights`: g_j the distance from the nominal input to the bound it pushes
+  toward, time-varying), Q multiplied by the factor of `LADDER`: the rule and factor
+  (`INPUT_RULES` x `LADDER`) a self-test on the plan's own model picks: with every input 20%
+  weaker than modelled and the model's clock as it is, 5% and 10% slower (x' = s f(x, 0.8
+  u), `SELF_TEST`; a margin for a robot that is heavier or weaker than its model, which the
+  user does not have), process noise and a start error, the pair whose runs end within
+  twice the goal tolerance most often over the three, ties to the smallest geometric mean
+  of their median final errors. Bryson's rule alone is soft for a tolerance well under the
+  boxes (0.1 against half a turn); stiffer gains saturate a plan that rides its input bound and the
+  clipped loop can go unstable: the self-test sees both, on the model. A heavier or weaker
+  robot needs more input where the plan pushes hard, in the direction it pushes: the room
+  rule keeps the corrections out of the steps that leave little room;
 * the terminal cost: the goal test's own squared distance, P_N = diag(w^2) (w the goal
   weights; `terminal_cost`), since the goal is judged on the end state's distance alone;
 * the gains: the discrete Riccati recursion backwards, K_k = (R + B_k' P B_k)^-1 B_k' P A_k,
@@ -51,12 +55,20 @@ from rrtcolearn.planning.lqr import bryson_weights, input_box, step_jacobians
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.systems.base import System
 
-__all__ = ["LADDER", "SELF_TEST", "Nominal", "Rollouts", "TrackingController", "check_truth",
-           "input_box", "nominal_trajectory", "riccati_gains", "rollouts", "summarise",
-           "terminal_cost", "tracking_weights"]
+__all__ = ["INPUT_RULES", "LADDER", "ROOM_FLOOR", "SELF_TEST", "Nominal", "Rollouts",
+           "TrackingController", "check_truth", "input_box", "input_room_weights",
+           "nominal_trajectory", "riccati_gains", "rollouts", "summarise", "terminal_cost",
+           "tracking_weights"]
 
 LADDER = (1.0, 10.0, 100.0, 1000.0, 10000.0)
 """The multiples of Bryson's Q the self-test chooses among (`TrackingController.build`)."""
+INPUT_RULES = ("box", "room")
+"""The input weights the self-test chooses among, with each factor of `LADDER`: Bryson's rule
+from the input box ("box", `tracking_weights`) and from the room the nominal input leaves to
+the bound it pushes toward ("room", `input_room_weights`)."""
+ROOM_FLOOR = 0.3
+"""The least room `input_room_weights` counts, as a fraction of the input box's half-width
+(where the nominal rides its bound; 0.1 tracks the table's plans alike, docs/tracking.md)."""
 SELF_TEST = {"runs": 20, "input_scale": 0.8, "clocks": (1.0, 0.95, 0.9), "noise": 1e-3,
              "start_error": 0.01, "seed": 0}
 """The self-test's rollouts on the plan's model: their number per perturbed model, the factor
@@ -149,6 +161,25 @@ def tracking_weights(problem: PlanningProblem, dt: float) -> tuple[np.ndarray, n
     return bryson_weights(problem, dt, _input_weight(problem.system))
 
 
+def input_room_weights(problem: PlanningProblem, nominal: Nominal, dt: float) -> np.ndarray:
+    """(N, m, m) R_k by Bryson's rule on the room each step's nominal input leaves: R_k,jj =
+    dt / r_kj^2, r_kj the distance from the step's stage inputs to the bound they push toward
+    (the upper where above the box's centre), the least over the four stages, at least
+    `ROOM_FLOOR` x the half-width; the running cost's R_jj where an input has no finite limit.
+    Why: a robot heavier or weaker than its model needs more input where the plan pushes, in
+    the direction it pushes, so a correction asked for there is clipped; with this R the
+    regulator corrects where the plan leaves room (the cart-pole row, docs/tracking.md)."""
+    low, high = input_box(problem)
+    R_box = np.diag(tracking_weights(problem, dt)[1])
+    u = nominal.stage_inputs
+    with np.errstate(invalid="ignore"):
+        half, mid = 0.5 * (high - low), 0.5 * (high + low)
+        room = np.where(u >= mid, high - u, u - low).min(axis=1)
+        room = np.maximum(room, ROOM_FLOOR * half)
+    r = np.where(np.isfinite(half), dt / room**2, R_box)
+    return r[:, :, None] * np.eye(len(R_box))
+
+
 def terminal_cost(problem: PlanningProblem, dt: float) -> tuple[np.ndarray, str]:
     """(P_N (n, n), what it is): the weight of the end state's deviation from the nominal's
     end, the goal test's own squared distance diag(w^2) (w the goal weights, 1 each
@@ -167,8 +198,9 @@ def terminal_cost(problem: PlanningProblem, dt: float) -> tuple[np.ndarray, str]
 
 def riccati_gains(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray,
                   P_final: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The finite-horizon discrete Riccati recursion backwards over A (N, n, n), B (N, n, m):
-    gains K (N, m, n) and cost-to-go matrices P (N+1, n, n), P[N] = ``P_final``."""
+    """The finite-horizon discrete Riccati recursion backwards over A (N, n, n), B (N, n, m),
+    R (m, m) or one per step (N, m, m): gains K (N, m, n) and cost-to-go matrices P (N+1, n,
+    n), P[N] = ``P_final``."""
     N = len(A)
     K = np.empty((N, B.shape[2], A.shape[1]))
     P = np.empty((N + 1, *A.shape[1:]))
@@ -176,7 +208,7 @@ def riccati_gains(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray,
     for k in range(N - 1, -1, -1):
         a, b, p = A[k], B[k], P[k + 1]
         bp = b.T @ p
-        K[k] = np.linalg.solve(R + bp @ b, bp @ a)
+        K[k] = np.linalg.solve((R[k] if R.ndim == 3 else R) + bp @ b, bp @ a)
         nxt = Q + a.T @ p @ (a - b @ K[k])
         P[k] = 0.5 * (nxt + nxt.T)
     return K, P
@@ -188,7 +220,8 @@ class TrackingController:
 
     ``K`` (N, m, n) the gain of each step, ``P`` (N+1, n, n) the cost-to-go matrices,
     ``u_low``/``u_high`` (m,) the clipping box, ``terminal`` how P[N] was chosen,
-    ``state_weight`` the factor on Bryson's Q the gains were computed with."""
+    ``state_weight`` the factor on Bryson's Q the gains were computed with, ``input_rule``
+    the input weights' rule (`INPUT_RULES`)."""
 
     problem: PlanningProblem
     nominal: Nominal
@@ -198,16 +231,18 @@ class TrackingController:
     u_high: np.ndarray
     terminal: str
     state_weight: float = 1.0
+    input_rule: str = "box"
 
     @classmethod
     def build(cls, system: System, plan, problem: PlanningProblem | None = None, *,
-              state_weight: float = 1.0, ladder: tuple[float, ...] = LADDER
-              ) -> TrackingController:
+              state_weight: float = 1.0, ladder: tuple[float, ...] = LADDER,
+              input_rules: tuple[str, ...] = INPUT_RULES) -> TrackingController:
         """The controller of a plan (a `Plan` or a plan file's content) on ``system`` (the
         plan's model); ``problem`` defaults to the one the plan records
-        (`evaluate.plan_problem`). Q is Bryson's times the factor of ``ladder`` the model's
-        self-test picks (module docstring; ``ladder=(1.0,)``: Bryson's rule as the goal LQR
-        uses it), times ``state_weight`` (larger tracks more stiffly for the same inputs)."""
+        (`evaluate.plan_problem`). Q is Bryson's times the factor of ``ladder``, R by the rule
+        of ``input_rules``, the pair the model's self-test picks (module docstring;
+        ``ladder=(1.0,), input_rules=("box",)``: Bryson's rule as the goal LQR uses it), Q
+        times ``state_weight`` (larger tracks more stiffly for the same inputs)."""
         problem = plan_problem(system, plan) if problem is None else problem
         nominal = nominal_trajectory(system, plan)
         dt = nominal.dt
@@ -217,15 +252,22 @@ class TrackingController:
         B = np.array([b for _, b in jac])
         if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
             raise ConfigError("the linearisation along the plan is not finite")
-        Q, R = tracking_weights(problem, dt)
+        Q, R_box = tracking_weights(problem, dt)
         P_final, terminal = terminal_cost(problem, dt)
         low, high = input_box(problem)
+        unknown = set(input_rules) - set(INPUT_RULES)
+        if unknown or not input_rules:
+            raise ConfigError(f"input rules {sorted(unknown)}: give some of {INPUT_RULES}")
+        rules = {"box": R_box, "room": input_room_weights(problem, nominal, dt)}
+        if "box" in input_rules and np.all(rules["room"] == R_box):
+            input_rules = ("box",)  # no finite input limit: the rules agree
+        candidates = [(rule, factor) for rule in input_rules for factor in ladder]
         best, best_score = None, None
-        for factor in ladder:
+        for rule, factor in candidates:
             w = factor * state_weight
-            K, P = riccati_gains(A, B, w * Q, R, P_final)
-            c = cls(problem, nominal, K, P, low, high, terminal, float(w))
-            if len(ladder) == 1:
+            K, P = riccati_gains(A, B, w * Q, rules[rule], P_final)
+            c = cls(problem, nominal, K, P, low, high, terminal, float(w), rule)
+            if len(candidates) == 1:
                 return c
             score = _self_test(c)
             if best_score is None or score < best_score:

@@ -107,7 +107,8 @@ def export(
             g_target = target.with_name(f"{target.stem}-gains{target.suffix}")
             _write_table(g_target, fmt, [
                 f"rrtcolearn tracking gains: system {system.name}, step {nom.dt} s, state "
-                f"weight {c.state_weight:g} x Bryson's Q (the self-test's), terminal cost "
+                f"weight {c.state_weight:g} x Bryson's Q, input weight by the {c.input_rule} "
+                f"rule (the self-test's), terminal cost "
                 f"{c.terminal}",
                 "u = clip(u_nom - K (x - x_nom), input box) with K held from each row's t to "
                 "the next (the last row's K: the last step's); angles of x - x_nom the short "
@@ -174,7 +175,8 @@ def track(
 
         table = Table(title=f"track {plan_file}: {rollouts} runs on "
                       f"{true_system or 'the model'}, noise {noise:g}, start error "
-                      f"{start_error:g}, state weight {c.state_weight:g} x Bryson's, seed "
+                      f"{start_error:g}, state weight {c.state_weight:g} x Bryson's, input "
+                      f"weight the {c.input_rule} rule, seed "
                       f"{0 if seed is None else seed}")
         table.add_column("")
         for name in ("open-loop", "tracked"):
