@@ -41,7 +41,7 @@ def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     elementwise operations, so that a Newton step (and the tree it grows) has the same bits on
     every CPU; LAPACK's least squares (`np.linalg.lstsq`, whose result depends on the BLAS
     kernel the CPU selects) only where a pivot vanishes (``a`` singular to working precision)."""
-    m = np.hstack([a, b[:, None]]).astype(np.float64)
+    m = np.hstack([a, b[:, None]]).astype(np.float64, copy=False)
     n = len(b)
     scale = float(np.max(np.abs(a))) if a.size else 0.0
     for k in range(n):
@@ -131,11 +131,11 @@ def newton(system: System, x0: np.ndarray, lam0: np.ndarray, duration0: float,
             return np.hstack([offset(z[:, :n]), hs[:, None]]), rate, z
 
     r, rate, z = (a[0] for a in residual(v[None]))
-    norm = float(_norm(r))
+    norm = _norm(r)
     for it in range(max_iterations + 1):
         if not np.isfinite(norm):
             return None
-        state_norm = float(_norm(r[:n]))
+        state_norm = _norm(r[:n])
         if state_norm <= tolerance and abs(r[n]) <= 1e-9 * (1 + abs(w)):
             return v, z, state_norm, it
         if it == max_iterations:
@@ -158,8 +158,8 @@ def newton(system: System, x0: np.ndarray, lam0: np.ndarray, duration0: float,
         step = _solve(jac, -r)
         # trust region: the costate may change by at most its size (or 1), the duration by
         # half of itself (or 0.2 s); then a backtracking line search, evaluated in one batch
-        shrink = max(1.0, float(_norm(step[:n]))
-                     / max(1.0, float(_norm(v[:n]))),
+        shrink = max(1.0, _norm(step[:n])
+                     / max(1.0, _norm(v[:n])),
                      abs(step[n]) / max(0.2, 0.5 * v[-1]))
         step = step / shrink
         cand = v[None] + np.asarray(_STEP_SIZES)[:, None] * step[None]
@@ -227,7 +227,7 @@ def land(system: System, x0: np.ndarray, lam0: np.ndarray, steps: int, target: n
 
     r = ends(lam[None])[0]
     for _ in range(max_iterations + 1):
-        norm = float(_norm(r))
+        norm = _norm(r)
         if not np.isfinite(norm):
             return None
         if norm <= tolerance:
