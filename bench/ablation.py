@@ -250,7 +250,8 @@ def anytime(planner, seed: int, budget: float) -> dict:
     from rrtcolearn.planning.termination import TerminationCondition
 
     p = solve_with_restarts(planner.solve, TerminationCondition(None, None, budget), seed,
-                            improve=partial(shortcut, planner))
+                            improve=partial(shortcut, planner),
+                            narrowest=planner.narrowest_control_scale())
     a = p.extra["anytime"]
     return {"solved": bool(p.solved), "cost": float(p.path_cost) if p.solved else None,
             "first_cost": a["first_solution_cost"], "solves": a["solves"]}

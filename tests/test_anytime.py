@@ -120,3 +120,70 @@ def test_the_restart_baseline_spends_a_cpu_budget(pendulum):
     assert LIMIT <= cpu < LIMIT + MARGIN
     assert p.solved and a["scheme"] == "restarts" and a["solves"] > 1
     assert p.path_cost == min(c for _, c in a["progress"])
+
+
+def _random_planner(pendulum, u_max=4.0):
+    """Random controls and the LQR connection alone (no learned functions): every edge but
+    the LQR chains' is a random control, drawn from the box the solve was given."""
+    from rrtcolearn.planning.rrt import RRTCoLearn
+    from rrtcolearn.planning.settings import PlannerSettings
+
+    problem = PlanningProblem.create(pendulum, START, GOAL, 0.3, u_max=u_max)
+    return RRTCoLearn(problem, None, PlannerSettings(time_weight=1.0))
+
+
+def test_the_narrowest_box_costs_as_much_as_the_time(pendulum):
+    """The narrowest box's dearest input costs w: u^2 R / 2 = w with the pendulum's R = 1,
+    |u| = sqrt(2 w); a box already that cheap is not narrowed."""
+    planner = _random_planner(pendulum, u_max=4.0)
+    s = planner.controls.narrowest_scale()
+    assert s == pytest.approx(np.sqrt(2.0) / 4.0, rel=1e-9)
+    low, high = planner.controls.draw_box(s)
+    assert low == pytest.approx([-np.sqrt(2.0)]) and high == pytest.approx([np.sqrt(2.0)])
+    assert planner.controls.draw_box(1.0) is not None
+    assert all(a is b for a, b in zip(planner.controls.draw_box(1.0),
+                                      planner.propagator.control_box, strict=True))
+    assert _random_planner(pendulum, u_max=1.0).controls.narrowest_scale() == 1.0
+
+
+def test_later_solves_draw_from_the_narrowed_box(pendulum):
+    """Every random-control edge of every solve lies in the box of that solve's scale; the
+    scale halves only after a solve cheaper than every earlier one and doubles back after a
+    narrowed solve that was not; the best cost only falls; an iteration budget gives the
+    same plan and scales for the same seed."""
+    planner = _random_planner(pendulum)
+    narrowest = planner.controls.narrowest_scale()
+
+    def run():
+        plans: list = []
+
+        def solve(termination, seed, scale=1.0):
+            plans.append((scale, planner.solve(termination, seed, scale)))
+            return plans[-1][1]
+
+        p = solve_with_restarts(solve, TerminationCondition(None, 20000), seed=2,
+                                narrowest=narrowest)
+        return p, plans
+
+    p, plans = run()
+    scales = p.extra["anytime"]["control_scales"]
+    assert [s for s, _ in plans] == scales and len(scales) > 3 and min(scales) < 1.0
+    cheapest = np.inf
+    for (scale, q), following in zip(plans, [*scales[1:], None], strict=True):
+        d = q.tree
+        low, high = 4.0 * scale * np.array([-1.0, 1.0])
+        inputs = [float(d.controls[i][0]) for i in range(1, d.n_nodes) if d.kind(i) == "control"]
+        assert inputs and low <= min(inputs) and max(inputs) <= high
+        if following is not None:
+            cheaper = q.solved and q.path_cost < cheapest
+            expected = max(narrowest, scale / 2) if cheaper else min(1.0, 2 * scale) \
+                if scale < 1.0 else scale
+            assert following == pytest.approx(expected)
+        if q.solved:
+            cheapest = min(cheapest, q.path_cost)
+    costs = [c for _, c in p.extra["anytime"]["progress"]]
+    assert all(b < c for c, b in pairwise(costs)) and p.path_cost == costs[-1]
+    assert costs[0] == plans[0][1].path_cost and plans[0][0] == 1.0  # the plain first solve
+    again, _ = run()
+    assert again.to_dict()["path"] == p.to_dict()["path"]
+    assert again.extra["anytime"]["control_scales"] == scales

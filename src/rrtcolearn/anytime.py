@@ -48,16 +48,37 @@ def _remaining(termination: TerminationCondition, iterations: int, cpu0: float
     return TerminationCondition(wall, its, cpu)
 
 
-def solve_with_restarts(solve: Callable[[TerminationCondition, int], Plan],
+def _at_most_spent(left: TerminationCondition, termination: TerminationCondition,
+                   iterations: int, cpu0: float) -> TerminationCondition:
+    """``left`` cut to no more than what has been spent so far: wall time, iterations and
+    process CPU since ``cpu0``, each where the budget has that part."""
+    def cut(rest: float | None, spent: float) -> float | None:
+        return None if rest is None else min(rest, spent)
+
+    return TerminationCondition(cut(left.time_limit, termination.elapsed()),
+                                cut(left.max_iterations, iterations),
+                                cut(left.cpu_time_limit, time.process_time() - cpu0))
+
+
+def solve_with_restarts(solve: Callable[..., Plan],
                         termination: TerminationCondition, seed: int = 0,
-                        improve: Callable[[Plan, Callable[[], bool]], Plan] | None = None
-                        ) -> Plan:
+                        improve: Callable[[Plan, Callable[[], bool]], Plan] | None = None,
+                        narrowest: float = 1.0) -> Plan:
     """Call ``solve`` until ``termination``'s whole budget is spent, each solve after the
     first with a fresh child seed of ``seed``, each solved plan then passed through
     ``improve(plan, stop)`` if given (e.g. `planning.improve.shortcut`; ``stop()`` is true once
     the budget is spent); the cheapest solved plan (or, with none solved, the first plan),
     with ``extra["anytime"]``: the scheme, the number of solves, and ``progress``, [planning
-    CPU so far, best cost] at each improvement."""
+    CPU so far, best cost] at each improvement.
+
+    ``narrowest`` < 1 (`controls.RandomControls.narrowest_scale`): later solves draw their
+    random controls from a narrower input box, ``solve(termination, seed, scale)``
+    (`RRTCoLearn.solve`'s ``control_scale``), where held inputs cost less. The scale halves
+    (down to ``narrowest``) after a solve that found a cheaper path and doubles (up to 1)
+    after one at a scale below 1 that did not; such a solve gets at most the budget spent
+    so far (CPU, wall time, iterations: whichever the budget has), so a box too narrow to
+    reach the goal costs at most as much as all before it. The first solve is the plain
+    one (scale 1), and so is every solve at scale 1."""
     if termination.time_limit is None and termination.max_iterations is None and \
             termination.cpu_time_limit is None:
         raise ValueError("an anytime plan needs a budget: a time, CPU time or iteration limit")
@@ -68,10 +89,21 @@ def solve_with_restarts(solve: Callable[[TerminationCondition, int], Plan],
     progress: list[list[float]] = []
     runs, iterations, cpu, wall = 0, 0, 0.0, 0.0
     tries = gains = 0  # improvements run, and those that made their path cheaper
+    scale, scales = 1.0, []  # the random controls' input box (1: the whole box)
+    cheapest_solve = np.inf  # the cheapest path a solve found (before any improvement)
     while (left := _remaining(termination, iterations, cpu0)) is not None:
         child = seed if runs == 0 else int(children.spawn(1)[0].generate_state(1)[0])
-        p = solve(left, child)
+        scales.append(scale)
+        p = solve(left, child) if scale == 1.0 else \
+            solve(_at_most_spent(left, termination, iterations, cpu0), child, scale)
+        if narrowest < 1.0:
+            if p.solved and p.path_cost < cheapest_solve:
+                scale = max(narrowest, 0.5 * scale)
+            elif scale < 1.0:
+                scale = min(1.0, 2.0 * scale)
         runs += 1
+        if p.solved:
+            cheapest_solve = min(cheapest_solve, p.path_cost)
         iterations += max(1, p.iterations)
         cpu += p.planning_cpu_s
         wall += p.planning_time_s
@@ -117,6 +149,7 @@ def solve_with_restarts(solve: Callable[[TerminationCondition, int], Plan],
                                                          "__name__", "improve")
     scheme = "restarts" if improve is None else f"restarts+{name}"
     best.extra["anytime"] = {"scheme": scheme, "solves": runs, "progress": progress,
+                             **({"control_scales": scales} if narrowest < 1.0 else {}),
                              "iterations": iterations, "planning_cpu_s": round(cpu, 6),
                              "first_solution_cpu_s": progress[0][0] if progress else None,
                              "first_solution_cost": progress[0][1] if progress else None}

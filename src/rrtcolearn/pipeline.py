@@ -705,7 +705,8 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
         from rrtcolearn.planning.improve import shortcut
 
         result = solve_with_restarts(planner.solve, termination, seed,
-                                     improve=partial(shortcut, planner))
+                                     improve=partial(shortcut, planner),
+                                     narrowest=planner.narrowest_control_scale())
     else:
         result = planner.solve(termination, seed)
     result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None

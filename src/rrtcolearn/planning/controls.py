@@ -87,7 +87,9 @@ class RandomControls:
     ``goal_bias`` and ``stall_iterations`` (the batch runs the loop's iterations).
     ``batch`` holds the compiled iterations' constants while a solve runs them (None: every
     iteration in Python); ``pending`` the parent of a goal-biased expansion left to the next
-    batch (-1: none).
+    batch (-1: none); ``scale`` the input box the draws come from, as a fraction of the
+    control box around its input nearest zero (`draw_box`; 1: the whole box; set by
+    `RRTCoLearn.solve`'s ``control_scale``).
     """
 
     kind = "control"
@@ -98,6 +100,7 @@ class RandomControls:
         self.rejected: str | None = "no_costate"
         self.batch: _ExploreConsts | None = None
         self.pending = -1
+        self.scale = 1.0
 
     @property
     def compiled(self) -> bool:
@@ -133,7 +136,7 @@ class RandomControls:
         prob, sys, s = self.problem, self.problem.system, self.settings
         count = max(1, s.control_samples) if directed else 1
         longest = self.longest_hold()
-        inputs = rng.uniform(*self.propagator.control_box, size=(count, sys.n_inputs))
+        inputs = rng.uniform(*self.draw_box(), size=(count, sys.n_inputs))
         lengths = rng.integers(1, longest + 1, size=count)
         # one compiled call for every draw; a draw's state outside the constraints (or not
         # finite) is its last, and is dropped
@@ -300,7 +303,7 @@ class RandomControls:
         boxes = np.zeros((8, max(n, m)))
         boxes[0, :n], boxes[1, :n] = sys.state_low, sys.state_high
         boxes[2, :n], boxes[3, :n] = self.propagator.box
-        boxes[4, :m], boxes[5, :m] = self.propagator.control_box
+        boxes[4, :m], boxes[5, :m] = self.draw_box()
         boxes[6, :n] = sys.state_low
         boxes[7, list(sys.angle_dims)] = 1.0
         goal, tol2 = np.zeros((3, n)), 0.0
@@ -309,6 +312,38 @@ class RandomControls:
         consts = np.array([index.kernel_rows() for index in tree.indices], dtype=np.float64)
         floats = np.array([s.dt, s.goal_bias, tol2, s.time_weight])
         return _ExploreConsts(self.longest_hold(), floats, boxes, goal, consts)
+
+    def draw_box(self, scale: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The box the inputs are drawn from at ``scale`` (default ``self.scale``): the
+        control box shrunk by that factor towards its input nearest zero, where the running
+        cost w + u^T R u / 2 is least (the whole box, as it is, at 1)."""
+        low, high = self.propagator.control_box
+        scale = self.scale if scale is None else scale
+        if scale == 1.0:
+            return low, high
+        centre = np.clip(0.0, low, high)
+        return centre + scale * (low - centre), centre + scale * (high - centre)
+
+    def narrowest_scale(self) -> float:
+        """The least scale worth drawing from (`draw_box`): the one at which the box's
+        dearest corner costs as much as the time, u^T R u / 2 = w (R, w: the running cost's).
+        Below it an input costs less than the time it is held, and a smaller box only makes
+        paths longer. 1 where the whole box costs no more than that (nothing to narrow)."""
+        r, w = self.propagator.input_weight, self.settings.time_weight
+
+        def dearest(scale: float) -> float:
+            low, high = self.draw_box(scale)
+            corners = np.array(np.meshgrid(*zip(low, high, strict=True))).reshape(
+                len(low), -1).T
+            return float(0.5 * np.einsum("ki,ij,kj->k", corners, r, corners).max())
+
+        if r is None or dearest(1.0) <= w:
+            return 1.0
+        lo, hi = 0.0, 1.0  # dearest(lo) < w < dearest(hi): bisection
+        for _ in range(50):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if dearest(mid) < w else (lo, mid)
+        return hi
 
     def longest_hold(self) -> int:
         """The most RK4 steps a random-control edge holds its input: the data's longest

@@ -116,11 +116,15 @@ class RRTCoLearn:
             RandomControls(self.propagator)
         self.extra_connections = tuple(connections)
 
-    def solve(self, termination: TerminationCondition, seed: int | np.random.SeedSequence = 0
-              ) -> Plan:
-        """Grow the tree until a node reaches the goal region or ``termination`` says stop."""
+    def solve(self, termination: TerminationCondition, seed: int | np.random.SeedSequence = 0,
+              control_scale: float = 1.0) -> Plan:
+        """Grow the tree until a node reaches the goal region or ``termination`` says stop;
+        random-control inputs drawn from the input box shrunk by ``control_scale`` towards
+        zero (`controls.RandomControls.draw_box`; anytime planning's later solves)."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         controls = self.controls
+        if controls is not None:
+            controls.scale = float(control_scale)
         # compiled code this solve may call and no earlier one loaded: before the clock
         load_kernels(sys, explore=controls is not None and s.control_edges is not False
                      and controls.compiled, lqr=s.goal_lqr is not False)
@@ -157,6 +161,14 @@ class RRTCoLearn:
             # the last iteration's expansion, left to a compiled batch
             controls.run_batch(rng, tree, progress, 0)
         return self._result(run, time.thread_time() - cpu0, termination.elapsed())
+
+    def narrowest_control_scale(self) -> float:
+        """The least ``control_scale`` anytime planning narrows random controls to
+        (`controls.RandomControls.narrowest_scale`); 1 (never narrowed) without random
+        controls."""
+        if self.controls is None or self.settings.control_edges is False:
+            return 1.0
+        return self.controls.narrowest_scale()
 
     def start(self, rng: np.random.Generator) -> Solve:
         """The state of a new `solve`: the tree at the start, its node indices, the schedule
