@@ -6,6 +6,7 @@ the default planner, the same seeds, the schemes alternated seed by seed.
 
     PYTHONPATH=src python bench/narrowing_ab.py [--models DIR] [--out FILE] [--seeds 5]
         [--anytime 10] [--problems a,b] [--schemes whole,narrowing]
+    python bench/narrowing_ab.py --table docs/narrowing_ab.json
 
 Per problem and scheme: the median best cost after ``--anytime`` s of process CPU over the
 problem's optimum (bench/ablation.py's), the median number of solves, the medians of the
@@ -54,7 +55,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--anytime", type=float, default=10.0, help="process CPU s per query")
     ap.add_argument("--problems", default="sparse_rrt_cartpole,quadrotor,sparse_rrt_acrobot")
     ap.add_argument("--schemes", default="whole,narrowing")
+    ap.add_argument("--table", type=Path, default=None, help="print a results file's table")
     args = ap.parse_args(argv)
+    if args.table:
+        results = json.loads(args.table.read_text())
+        print(table(results))
+        return results
     settings = {"anytime": args.anytime}
     results = {"settings": settings, "problems": {}}
     if args.out.exists():
