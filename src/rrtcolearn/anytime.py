@@ -11,7 +11,10 @@ of the CPU its solve took, shrinking where improving does not pay. It returns th
 solved plan, with its best cost against planning CPU recorded in ``plan.extra["anytime"]``
 (OMPL's progress properties, the data a best-cost-over-time figure is drawn from). Without
 ``improve`` it is the restart baseline an anytime scheme has to beat at equal CPU
-(docs/anytime.md).
+(docs/anytime.md). With ``narrowest`` below 1 (``plan.anytime``: where random-control inputs
+can cost more than the time) later solves draw their random controls from an input box
+narrowed towards zero after each solve cheaper than all before it, so that later solves
+look for cheaper paths rather than repeat the first in expectation.
 
 The first solve uses the query's own seed, so the first solution, and the time to it, are a
 plain solve's. With an iteration budget (``TerminationCondition.max_iterations``: the

@@ -308,7 +308,9 @@ class PlanConfig(_Section):
     anytime: bool = Field(
         False, description="spend the whole time (or iteration) limit: after the first "
         "solution solve again with fresh child seeds, shortcut every path (stretches by "
-        "single extremals, the tail to the goal by exact extremals or the LQR loop), and "
+        "single extremals, the tail to the goal by exact extremals or the LQR loop), draw "
+        "later solves' random controls from an input box narrowed after each cheaper solve "
+        "(where the box's dearest input costs more than the time weight), and "
         "return the cheapest path, its best cost "
         "against CPU in the plan's extra.anytime.progress (rrtcolearn.anytime, "
         "rrtcolearn.planning.improve)")
