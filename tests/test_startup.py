@@ -94,3 +94,25 @@ for seed, u_max in ((1, None), (2, 1.0)):
 assert signatures() == loaded, (signatures(), loaded)
 """
     assert imported_after(code) is not None  # raises on a failed assertion in the process
+
+
+def test_plan_pauses_the_collector_for_its_start_up(tiny_model, tmp_path):
+    """No full collection while `plan` imports the library and loads the model (there were
+    two, 0.1 s: docs/performance.md), and in a process that goes on (the command called
+    in-process), the collector runs again afterwards with nothing left frozen."""
+    code = f"""
+import gc
+full = []
+gc.callbacks.append(lambda phase, info: phase == "start" and full.append(info["generation"]))
+import rrtcolearn.cli as c
+sys.argv = ['rrtcolearn', 'plan', '--model', {str(tiny_model)!r}, '--seed', '2',
+            '--max-iterations', '100', '--out', {str(tmp_path / 'p.json')!r}]
+try:
+    c.app()
+except SystemExit as e:
+    assert e.code == 0, e.code
+assert 2 not in full, full
+assert gc.isenabled() and gc.get_freeze_count() == 0
+"""
+    assert imported_after(code) is not None  # raises on a failed assertion in the process
+    assert (tmp_path / "p.json").is_file()
