@@ -190,7 +190,9 @@ def load_arrays(path: str | os.PathLike, fmt: str) -> tuple[dict[str, np.ndarray
         raise ArtefactError(f"{path} is not a readable {fmt} file (not a zip archive: "
                             "truncated, corrupt or another kind of file)")
     try:
-        with np.load(path, allow_pickle=False) as npz, open(path, "rb") as fh:
+        # one open file for both readers (zipfile seeks to its own position on each
+        # read): the members read directly are those of the archive np.load read
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as npz:
             arrays = {k: _read_stored(npz, fh, k) for k in npz.files}
     # Damaged bytes reach several parsers, each with its own exceptions: zipfile (BadZipFile;
     # RuntimeError for a flag bit that says "encrypted"; NotImplementedError for a zip version
