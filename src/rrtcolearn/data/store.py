@@ -151,11 +151,15 @@ def _read_stored(npz, fh, name: str) -> np.ndarray:
     """The array ``name`` of an open `np.load` archive. A large member stored uncompressed
     (as `save_arrays` writes them) is read from the file ``fh`` into its array in one
     read, after zipfile's checks of the member (its local header, flags and compression)
-    and numpy's of the .npy header: np.load copies it in 256 KiB pieces through zipfile,
-    which also computes its CRC, a third of the load of a 4-state model's 90-170 MB file
-    (its bytes are checked by the arrays' SHA-256 digest instead, in `load_arrays`).
-    Anything else, e.g. an object dtype that np.load refuses, goes through np.load."""
-    info = npz.zip.getinfo(f"{name}.npy")
+    and numpy's of the .npy header. np.load copies it in 256 KiB pieces through zipfile,
+    which also computes its CRC: 0.18-0.30 s CPU against 0.11-0.17 s for the 106-169 MB
+    file of a 4-state model (docs/performance.md); its bytes are checked by the arrays'
+    SHA-256 digest instead, in `load_arrays`. Anything else, e.g. an object dtype that
+    np.load refuses, goes through np.load."""
+    try:
+        info = npz.zip.getinfo(f"{name}.npy")
+    except KeyError:  # a member np.load names otherwise
+        return npz[name]
     if info.compress_type != zipfile.ZIP_STORED or info.file_size < _DIRECT_BYTES:
         return npz[name]
     with npz.zip.open(info) as member:
