@@ -94,3 +94,34 @@ for seed, u_max in ((1, None), (2, 1.0)):
 assert signatures() == loaded, (signatures(), loaded)
 """
     assert imported_after(code) is not None  # raises on a failed assertion in the process
+
+
+def test_plan_pauses_the_collector_for_its_start_up(tiny_model, tmp_path):
+    """`plan` loads the model with the collector paused (two full passes over the imports'
+    objects cost 0.1 s: docs/performance.md), plans with it running and the start-up's
+    objects frozen, and in a process that goes on (the command called in-process) leaves it
+    running with nothing frozen."""
+    code = f"""
+import gc
+import rrtcolearn.cli as c
+from rrtcolearn import pipeline
+seen = []
+load, plan = pipeline.load_model, pipeline.plan
+def load_spy(*a, **k):
+    seen.append(("load", gc.isenabled()))
+    return load(*a, **k)
+def plan_spy(*a, **k):
+    seen.append(("plan", gc.isenabled(), gc.get_freeze_count() > 0))
+    return plan(*a, **k)
+pipeline.load_model, pipeline.plan = load_spy, plan_spy
+sys.argv = ['rrtcolearn', 'plan', '--model', {str(tiny_model)!r}, '--seed', '2',
+            '--max-iterations', '100', '--out', {str(tmp_path / 'p.json')!r}]
+try:
+    c.app()
+except SystemExit as e:
+    assert e.code == 0, e.code
+assert seen == [("load", False), ("plan", True, True)], seen
+assert gc.isenabled() and gc.get_freeze_count() == 0
+"""
+    assert imported_after(code) is not None  # raises on a failed assertion in the process
+    assert (tmp_path / "p.json").is_file()

@@ -190,3 +190,65 @@ def test_a_header_that_is_not_an_npy_header_is_not_called_pickled(small_dataset,
     at = raw.find(b"{'descr'", _member(raw, "point_x1.npy").header_offset)
     message = _refused_in_one_line(raw[:at] + b"[" + raw[at + 1:], tmp_path / "damaged.npz")
     assert "truncated or corrupt" in message and "unpickling" not in message
+
+
+def _large_file(tmp_path) -> tuple:
+    """A file whose members are read straight from the file (at least 1 MiB each, as a
+    model's arrays are): float rows, a Fortran-ordered block and int32 row numbers."""
+    from rrtcolearn.data.store import _DIRECT_BYTES
+
+    rng = np.random.default_rng(5)
+    arrays = {"points": rng.normal(size=(_DIRECT_BYTES // 40 + 7, 5)),
+              "fortran": np.asfortranarray(rng.normal(size=(300, _DIRECT_BYTES // 2000))),
+              "rows": rng.permutation(_DIRECT_BYTES // 3).astype(np.int32),
+              "small": np.arange(4.0)}
+    path = tmp_path / "large.npz"
+    save_arrays(path, "rrtcolearn.test", arrays, {})
+    return path, arrays
+
+
+def test_large_members_read_as_np_load_reads_them(tmp_path, monkeypatch):
+    path, arrays = _large_file(tmp_path)
+    direct = []
+    fromfile = np.fromfile
+    monkeypatch.setattr(np, "fromfile", lambda *a, **k: direct.append(1) or fromfile(*a, **k))
+    back, _ = load_arrays(path, "rrtcolearn.test")
+    assert len(direct) == 3  # the three large members, straight from the file
+    with np.load(path) as npz:  # the independent reference: numpy's own reader
+        for name, a in arrays.items():
+            ref = npz[name]
+            assert back[name].dtype == ref.dtype and back[name].shape == ref.shape
+            assert back[name].flags.f_contiguous == ref.flags.f_contiguous
+            assert back[name].flags.writeable
+            assert np.array_equal(back[name], ref) and np.array_equal(ref, a), name
+
+
+@pytest.mark.parametrize("damage", ["data", "encrypted", "truncated", "shape", "compression"])
+def test_damage_to_a_large_member_is_refused(tmp_path, damage):
+    """A large member's bytes skip zipfile's CRC (`_read_stored`): a flipped data byte is
+    caught by the digest, and the member's zip and .npy headers are still checked."""
+    path, _ = _large_file(tmp_path)
+    raw = bytearray(path.read_bytes())
+    member = _member(bytes(raw), "points.npy")
+    if damage == "data":
+        raw[member.header_offset + member.file_size // 2] ^= 0x10
+        match = "checksum"
+    elif damage == "encrypted":
+        raw[_central_entry(bytes(raw), "points.npy") + 8] ^= 0x01
+        match = "encrypted"
+    elif damage == "truncated":  # the central directory survives; the member's data not
+        end = member.header_offset + member.file_size // 2
+        raw = raw[:end] + raw[end + 4096:]
+        match = "truncated or corrupt"
+    elif damage == "shape":
+        at = raw.find(b"'shape': (", member.header_offset) + len(b"'shape': (")
+        raw[at] = ord("9") if raw[at] != ord("9") else ord("8")
+        match = "truncated or corrupt|checksum"
+    else:  # the central directory says deflated: zipfile's decompressor meets stored bytes
+        raw[_central_entry(bytes(raw), "points.npy") + 10] = zipfile.ZIP_DEFLATED
+        match = "truncated or corrupt"
+    damaged = tmp_path / "damaged.npz"
+    damaged.write_bytes(bytes(raw))
+    with pytest.raises(ArtefactError, match=match) as info:
+        load_arrays(damaged, "rrtcolearn.test")
+    assert "\n" not in str(info.value)
