@@ -15,6 +15,8 @@ When each connection is switched on is `planning.schedule`'s to say.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from itertools import pairwise
 
 import numpy as np
@@ -77,7 +79,7 @@ def goal_lqr(propagator: Propagator) -> GoalLQR | str:
 
 class ShootingConnection:
     """Shooting from the nearest untried node within ``connect_reach`` of the goal, from U's
-    guess; ``failed`` counts the nodes tried in vain (the schedule's funnel rule)."""
+    guess."""
 
     name = "shooting"
 
@@ -86,7 +88,6 @@ class ShootingConnection:
         n = propagator.problem.system.n_states
         self._lam, self._z0 = np.empty(n), np.empty(2 * n + 1)
         self.tried = np.zeros(256, dtype=bool)
-        self.failed = 0
 
     def connect(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
         """An edge from the nearest untried node to the goal by shooting, or None.
@@ -99,7 +100,6 @@ class ShootingConnection:
         prob, s = self.propagator.problem, self.propagator.settings
         m = tree.data.n_nodes
         self.tried = tried = grown(self.tried, m, False)
-        before = int(tried[:m].sum())
         states = tree.states
         offset = prob.goal_offset(states)
         wd = prob.goal_residual(states) * tree.weight
@@ -118,7 +118,6 @@ class ShootingConnection:
                     return node, [edge]
                 if duration >= s.max_duration:
                     break
-        self.failed += int(tried[:m].sum()) - before
         return None
 
     def report(self) -> dict:
@@ -133,7 +132,9 @@ class FunnelConnection:
 
     name = "funnel"
 
-    def __init__(self, propagator: Propagator, funnel: GoalFunnel):
+    def __init__(self, propagator: Propagator, funnel: GoalFunnel,
+                 more: Callable[[int], GoalFunnel] | None = None, limit: int = 0,
+                 grow_after: int = 0):
         self.propagator, self.funnel = propagator, funnel
         n = propagator.problem.system.n_states
         self._lam, self._z0 = np.empty(n), np.empty(2 * n + 1)
@@ -143,15 +144,25 @@ class FunnelConnection:
         self.index = np.zeros((256, FUNNEL_POINTS), int)
         self.tried = np.zeros(256, bool)
         self.queried = 0
+        # growing (`build` with ``limit``): ``more(k)`` builds k more extremals; the funnel
+        # doubles, up to ``limit`` extremals, after ``grow_after`` calls in a row that found
+        # no untried node within its radius (``idle``)
+        self._more, self.limit, self.grow_after = more, limit, grow_after
+        self.simulations = len(funnel.goal_costates)  # extremals drawn
+        self.idle = 0
+        self.grown = 0
 
     @classmethod
     def build(cls, propagator: Propagator, rng: np.random.Generator, weight: np.ndarray,
-              n_simulations: int) -> FunnelConnection:
+              n_simulations: int, limit: int = 0, grow_after: int = 0) -> FunnelConnection:
         """The connection along a goal funnel of ``n_simulations`` extremals (drawn from
-        ``rng``; built inside the timed region: its CPU time counts as planning time)."""
+        ``rng``; built inside the timed region: its CPU time counts as planning time); with
+        ``limit`` > ``n_simulations`` a funnel that doubles (more extremals from ``rng``) up
+        to ``limit`` extremals each time ``grow_after`` calls in a row found no tree node
+        within its radius to start from."""
         prob, s = propagator.problem, propagator.settings
-        funnel = GoalFunnel.build(
-            prob.system, prob.goal, prob.goal_offset, rng, n_simulations=n_simulations,
+        more = partial(
+            GoalFunnel.build, prob.system, prob.goal, prob.goal_offset, rng,
             time_weight=s.time_weight, dt=s.dt, max_duration=s.funnel_duration,
             max_cost=s.funnel_max_cost, scale=weight,
             # the funnel drops its states within this plain distance of the goal; a goal
@@ -159,7 +170,18 @@ class FunnelConnection:
             tolerance=prob.goal_tolerance if prob.goal_fn is None and
             prob.goal_weights is None else 0.0,
             min_duration=s.funnel_min_duration, box=(prob.state_low, prob.state_high))
-        return cls(propagator, funnel)
+        connection = cls(propagator, more(n_simulations=n_simulations), more, limit,
+                         grow_after)
+        connection.simulations = n_simulations  # drawn (a draw may give no costate)
+        return connection
+
+    def grow(self) -> None:
+        """Double the funnel (as many more extremals as it has, at most up to ``limit``);
+        every node's nearest funnel states are found again (the nodes tried stay tried)."""
+        k = min(self.simulations, self.limit - self.simulations)
+        self.funnel = self.funnel.merged(self._more(n_simulations=k))
+        self.simulations += k
+        self.queried, self.idle, self.grown = 0, 0, self.grown + 1
 
     def connect(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
         """An edge to the goal from the untried node nearest a funnel state, or None: the
@@ -180,8 +202,12 @@ class FunnelConnection:
         best = np.where(self.tried[:m], np.inf, self.dist[:m, 0])
         node = int(np.argmin(best))
         if not best[node] <= s.funnel_radius:
+            self.idle += 1
+            if self.idle >= self.grow_after and self.simulations < self.limit:
+                self.grow()
             return None
         self.tried[node] = True
+        self.idle = 0
         x0 = tree.data.states[node]
         offset = prob.goal_offset(x0)[0]
         # the node may be farther from the goal than the funnel state it starts from
@@ -203,7 +229,8 @@ class FunnelConnection:
         return None
 
     def report(self) -> dict:
-        return {"funnel_states": len(self.funnel)}
+        return {"funnel_states": len(self.funnel),
+                **({"funnel_grown": self.grown} if self.grown else {})}
 
     def note(self) -> str | None:
         return None

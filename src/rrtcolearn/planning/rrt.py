@@ -41,7 +41,7 @@ from rrtcolearn.planning.schedule import (
     AUTO_FUNNEL,
     CONNECT_AFTER,
     CONTROLS_AFTER,
-    FUNNEL_AFTER,
+    FUNNEL_START,
     Schedule,
 )
 from rrtcolearn.planning.settings import PlannerSettings
@@ -51,7 +51,7 @@ from rrtcolearn.systems.base import System
 
 # (the thresholds, the settings, the outcomes and the diagnosis are defined in their own
 # modules; named here too for the code that imports them from the planner)
-__all__ = ["AUTO_FUNNEL", "CONNECT_AFTER", "CONTROLS_AFTER", "FUNNEL_AFTER", "OUTCOMES",
+__all__ = ["AUTO_FUNNEL", "CONNECT_AFTER", "CONTROLS_AFTER", "FUNNEL_START", "OUTCOMES",
            "Edge", "PlannerSettings", "RRTCoLearn", "diagnose", "load_kernels"]
 
 
@@ -209,25 +209,27 @@ class RRTCoLearn:
                      schedule, on)
 
     def connection(self, name: str, rng: np.random.Generator, tree: GrowingTree,
-                   size: int | bool = AUTO_FUNNEL) -> Connection:
-        """The planner's goal connection ``name`` ("shooting", "funnel" of ``size``
-        extremals, "lqr"), built for a solve on ``tree``."""
+                   size: int | None = None) -> Connection:
+        """The planner's goal connection ``name`` ("shooting", "funnel", "lqr"), built for a
+        solve on ``tree``; the funnel of ``size`` extremals, or (None) the automatic one:
+        FUNNEL_START extremals doubling up to AUTO_FUNNEL (`schedule`)."""
         if name == "shooting":
             return ShootingConnection(self.propagator, self.model)
         if name == "funnel":
+            if size is None:
+                return FunnelConnection.build(self.propagator, rng, tree.weight, FUNNEL_START,
+                                              limit=AUTO_FUNNEL, grow_after=CONNECT_AFTER)
             return FunnelConnection.build(self.propagator, rng, tree.weight, int(size))
         return LQRConnection(self.propagator)
 
     def _connect(self, rng: np.random.Generator, run: Solve) -> bool:
-        """A goal-biased iteration's connections, each on tried in turn (switched on first
-        where the schedule says so); True when one reached the goal region."""
+        """A goal-biased iteration's connections, each on tried in turn (those the schedule
+        says are due switched on first); True when one reached the goal region."""
         progress, on, schedule = run.progress, run.connections, run.schedule
         progress.since_nearer += 1
         for name in schedule.connections_due(progress, on):
             on[name] = self.connection(name, rng, run.tree)
         for name in list(on):
-            if schedule.due_before_try(name, on, progress):
-                on[name] = self.connection(name, rng, run.tree)
             connection = on[name]
             if connection is None:
                 continue

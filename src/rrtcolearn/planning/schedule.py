@@ -28,14 +28,16 @@ CONNECT_AFTER = 50
 # 0.67-0.81x, at up to 15% higher first-path cost on the pendulum; a switch at once (1) was
 # faster still there but raised that cost by 54%.
 CONTROLS_AFTER = 30
-# The funnel is built once shooting has failed from this many nodes: building it costs
-# AUTO_FUNNEL integrations, worth paying only where shooting alone does not get into the
-# goal. (Chosen with the derived settings of issue 16, commit 8ae003d.)
-FUNNEL_AFTER = 20
-# The automatic funnel's extremals (an explicit plan.goal_funnel sets another size). (Chosen
-# with the derived settings of issue 16, commit 8ae003d; docs/external_problems.md records
-# that on sparse_rrt's problems a funnel this size did not connect.)
+# The automatic funnel switches on with shooting (same rule, CONNECT_AFTER), at FUNNEL_START
+# extremals, and doubles, up to AUTO_FUNNEL, each time CONNECT_AFTER goal-biased iterations in
+# a row found no tree node within its radius: a small funnel is cheap to build, a large one
+# is near more nodes. Until issue 31 (docs/derived_settings.md, "The funnel's switch-on")
+# the funnel was built at its full size only once shooting had failed from 20 nodes: on the
+# unbounded cart-pole and acrobot that came thousands of iterations after the tree was near
+# enough for the funnel to connect at its first or second try, and the 20 000 extremals'
+# build took most of the CPU of a plan that then connected at once.
 AUTO_FUNNEL = 20_000
+FUNNEL_START = AUTO_FUNNEL // 8
 
 
 @dataclass
@@ -86,25 +88,16 @@ class Schedule:
         """The connections to switch on at this goal-biased iteration, before any is tried
         (``on``: the connections on, by name). The LQR connection also while random controls
         explore (where it works, it is what gets the random-control tree into a small goal
-        region); shooting not (in the external problems it never reached the goal then, and
-        took up to a third of the CPU)."""
+        region); shooting and the funnel not (in the external problems shooting never reached
+        the goal then, and took up to a third of the CPU)."""
         due = []
         if progress.since_nearer >= CONNECT_AFTER:
             if self.auto_lqr and on.get("lqr") is None:
                 due.append("lqr")
-            if self.auto_connect and on.get("shooting") is None and not self.exploring:
-                due.append("shooting")
+            if not self.exploring:
+                due += [name for name, auto in (("shooting", self.auto_connect),
+                                                ("funnel", self.auto_funnel))
+                        if auto and on.get(name) is None]
         for name in due:
             self.switched[name] = progress.iterations
         return due
-
-    def due_before_try(self, name: str, on: dict, progress: Progress) -> bool:
-        """Switch ``name`` on now, just before it would be tried: the funnel, once shooting
-        (tried just before it, in vain) has failed from FUNNEL_AFTER nodes."""
-        if name != "funnel" or not self.auto_funnel or on.get("funnel") is not None:
-            return False
-        shooting = on.get("shooting")
-        if shooting is not None and shooting.failed >= FUNNEL_AFTER:
-            self.switched["funnel"] = progress.iterations
-            return True
-        return False
