@@ -27,6 +27,7 @@ from rrtcolearn.planning.funnel import GoalFunnel
 from rrtcolearn.planning.learned import goal_query
 from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
 from rrtcolearn.planning.propagator import Propagator
+from rrtcolearn.planning.schedule import Allowance
 from rrtcolearn.planning.shooting import shoot
 
 FUNNEL_POINTS = 3  # funnel states tried per node (each on its own extremal, nearest first)
@@ -88,9 +89,11 @@ class ShootingConnection:
         n = propagator.problem.system.n_states
         self._lam, self._z0 = np.empty(n), np.empty(2 * n + 1)
         self.tried = np.zeros(256, dtype=bool)
+        self.allowance = Allowance()
 
     def connect(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
-        """An edge from the nearest untried node to the goal by shooting, or None.
+        """An edge from the nearest untried node to the goal by shooting, or None (also
+        when the `schedule.Allowance` holds no attempt now).
 
         The first guesses are U's prediction for (node, goal) with its duration and with
         2, 4 and 8 times it: U's duration is the least reliable part of its guess far from the
@@ -98,6 +101,7 @@ class ShootingConnection:
         where the residual grows before it falls.
         """
         prob, s = self.propagator.problem, self.propagator.settings
+        self.allowance.accrue()
         m = tree.data.n_nodes
         self.tried = tried = grown(self.tried, m, False)
         states = tree.states
@@ -106,7 +110,7 @@ class ShootingConnection:
         d2 = np.einsum("ij,ij->i", wd, wd)
         d2[tried[:m] | (d2 > s.connect_reach**2)] = np.inf
         node = int(np.argmin(d2))
-        if np.isfinite(d2[node]):
+        if np.isfinite(d2[node]) and self.allowance.take():
             tried[node] = True
             x0 = states[node]
             guess = self.model.query(goal_query(x0, tree.shifts[node], offset[node]))[1][0]
@@ -136,6 +140,9 @@ class FunnelConnection:
                  more: Callable[[int], GoalFunnel] | None = None, limit: int = 0,
                  grow_after: int = 0):
         self.propagator, self.funnel = propagator, funnel
+        # the funnel's parts (``funnel``, the first, then each growth's), each with its own
+        # index, and the first (global) index of each part's states
+        self.parts, self.starts = [funnel], [0]
         n = propagator.problem.system.n_states
         self._lam, self._z0 = np.empty(n), np.empty(2 * n + 1)
         # per tree node: its nearest funnel states (distances and indices, rows filled up to
@@ -144,6 +151,7 @@ class FunnelConnection:
         self.index = np.zeros((256, FUNNEL_POINTS), int)
         self.tried = np.zeros(256, bool)
         self.queried = 0
+        self._states = np.empty((0, n))  # the tree's states at the last call
         # growing (`build` with ``limit``): ``more(k)`` builds k more extremals; the funnel
         # doubles, up to ``limit`` extremals, after ``grow_after`` calls in a row that found
         # no untried node within its radius (``idle``)
@@ -151,6 +159,7 @@ class FunnelConnection:
         self.simulations = len(funnel.goal_costates)  # extremals drawn
         self.idle = 0
         self.grown = 0
+        self.allowance = Allowance()
 
     @classmethod
     def build(cls, propagator: Propagator, rng: np.random.Generator, weight: np.ndarray,
@@ -176,27 +185,64 @@ class FunnelConnection:
         return connection
 
     def grow(self) -> None:
-        """Double the funnel (as many more extremals as it has, at most up to ``limit``);
-        every node's nearest funnel states are found again (the nodes tried stay tried)."""
+        """Double the funnel (as many more extremals as it has, at most up to ``limit``) as
+        a new part with its own index (no index is built again); the nodes queried so far
+        keep their nearest funnel states among the old parts' and the new part's."""
         k = min(self.simulations, self.limit - self.simulations)
-        self.funnel = self.funnel.merged(self._more(n_simulations=k))
+        part = self._more(n_simulations=k)
         self.simulations += k
-        self.queried, self.idle, self.grown = 0, 0, self.grown + 1
+        self.idle, self.grown = 0, self.grown + 1
+        self.starts.append(self.starts[-1] + len(self.parts[-1]))
+        self.parts.append(part)
+        q = self.queried
+        if q and len(part):
+            offsets = self.propagator.problem.goal_offset(self._states[:q])
+            d, i = part.nearest(offsets, FUNNEL_POINTS, self.propagator.settings.funnel_radius)
+            d_all = np.concatenate([self.dist[:q], d], axis=1)
+            i_all = np.concatenate([self.index[:q], i + self.starts[-1]], axis=1)
+            order = np.argsort(d_all, axis=1, kind="stable")[:, :FUNNEL_POINTS]
+            self.dist[:q] = np.take_along_axis(d_all, order, axis=1)
+            self.index[:q] = np.take_along_axis(i_all, order, axis=1)
+
+    def nearest(self, offsets: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """Weighted distances (N, FUNNEL_POINTS) from states given by their goal offsets to
+        their nearest funnel states within ``radius`` over every part (inf where fewer), and
+        those states' global indices."""
+        found = [part.nearest(offsets, FUNNEL_POINTS, radius) for part in self.parts
+                 if len(part)]
+        if not found:
+            return (np.full((len(offsets), FUNNEL_POINTS), np.inf),
+                    np.zeros((len(offsets), FUNNEL_POINTS), int))
+        starts = [a for a, part in zip(self.starts, self.parts, strict=True) if len(part)]
+        d_all = np.concatenate([d for d, _ in found], axis=1)
+        i_all = np.concatenate([i + a for (_, i), a in zip(found, starts, strict=True)],
+                               axis=1)
+        order = np.argsort(d_all, axis=1, kind="stable")[:, :FUNNEL_POINTS]
+        return np.take_along_axis(d_all, order, axis=1), np.take_along_axis(i_all, order, axis=1)
+
+    def steer(self, offset: np.ndarray, j: int, max_duration: float
+              ) -> tuple[np.ndarray, float] | None:
+        """`GoalFunnel.steer` from funnel state ``j`` (a global index over the parts)."""
+        p = int(np.searchsorted(self.starts, j, side="right")) - 1
+        return self.parts[p].steer(offset, j - self.starts[p], max_duration)
 
     def connect(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
-        """An edge to the goal from the untried node nearest a funnel state, or None: the
-        funnel extremal's solution moved to the node (`GoalFunnel.steer`), then polished by
-        a forward solve from the node."""
+        """An edge to the goal from the untried node nearest a funnel state, or None (also
+        when the `schedule.Allowance` holds no attempt now): the funnel extremal's solution
+        moved to the node (`GoalFunnel.steer`), then polished by a forward solve from the
+        node."""
         prop = self.propagator
         prob, sys, s = prop.problem, prop.problem.system, prop.settings
         lam, z0 = self._lam, self._z0
+        self.allowance.accrue()
         m = tree.data.n_nodes
         self.dist = grown(self.dist, m, np.inf)
         self.index = grown(self.index, m, 0)
         self.tried = grown(self.tried, m, False)
+        self._states = tree.data.states
         if self.queried < m:
             offsets = prob.goal_offset(tree.data.states[self.queried : m])
-            d, i = self.funnel.nearest(offsets, FUNNEL_POINTS, s.funnel_radius)
+            d, i = self.nearest(offsets, s.funnel_radius)
             self.dist[self.queried : m], self.index[self.queried : m] = d, i
             self.queried = m
         best = np.where(self.tried[:m], np.inf, self.dist[:m, 0])
@@ -206,8 +252,10 @@ class FunnelConnection:
             if self.idle >= self.grow_after and self.simulations < self.limit:
                 self.grow()
             return None
-        self.tried[node] = True
         self.idle = 0
+        if not self.allowance.take():
+            return None
+        self.tried[node] = True
         x0 = tree.data.states[node]
         offset = prob.goal_offset(x0)[0]
         # the node may be farther from the goal than the funnel state it starts from
@@ -215,7 +263,7 @@ class FunnelConnection:
         for q in range(FUNNEL_POINTS):
             if not self.dist[node, q] <= s.funnel_radius:
                 break
-            guess = self.funnel.steer(offset, int(self.index[node, q]), longest)
+            guess = self.steer(offset, int(self.index[node, q]), longest)
             if guess is None:
                 continue
             params = sys.params_from_costate(x0[None], guess[0][None])[0]
@@ -229,7 +277,7 @@ class FunnelConnection:
         return None
 
     def report(self) -> dict:
-        return {"funnel_states": len(self.funnel),
+        return {"funnel_states": sum(len(part) for part in self.parts),
                 **({"funnel_grown": self.grown} if self.grown else {})}
 
     def note(self) -> str | None:

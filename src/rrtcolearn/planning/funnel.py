@@ -14,7 +14,7 @@ are the goal's costate and the duration; a last forward solve from the node itse
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -116,20 +116,6 @@ class GoalFunnel:
 
     def __len__(self) -> int:
         return len(self.states)
-
-    def merged(self, other: GoalFunnel) -> GoalFunnel:
-        """This funnel and ``other`` (built for the same goal and settings, e.g. more
-        extremals drawn later) as one, with one index over both's states."""
-        from scipy.spatial import cKDTree
-
-        offsets = np.concatenate([self.offsets, other.offsets])
-        return replace(
-            self, states=np.concatenate([self.states, other.states]),
-            simulation=np.concatenate([self.simulation,
-                                       other.simulation + len(self.goal_costates)]),
-            steps=np.concatenate([self.steps, other.steps]),
-            goal_costates=np.concatenate([self.goal_costates, other.goal_costates]),
-            offsets=offsets, index=cKDTree(offsets * self.scale))
 
     def nearest(self, offsets: np.ndarray, k: int, radius: float
                 ) -> tuple[np.ndarray, np.ndarray]:

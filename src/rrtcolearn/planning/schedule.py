@@ -41,6 +41,33 @@ FUNNEL_START = AUTO_FUNNEL // 8
 
 
 @dataclass
+class Allowance:
+    """How often a goal connection whose attempt is a Newton solve from a tree node
+    (shooting, the funnel's continuation: tens of ms to seconds each, where an iteration
+    takes about one) may start one: each goal-biased iteration grants it 1 / (tries + 1) of
+    an attempt, at most one held in reserve, so the k-th attempt in vain is followed by k
+    goal-biased iterations of the tree's own growth before the next. Anytime planning's
+    allowance (gains + 1) / (tries + 1) (`anytime`), with no gains: a connection that
+    succeeds ends the solve. Counted in iterations, not CPU: the plan stays a function of the
+    seed."""
+
+    tries: int = 0
+    credit: float = 1.0
+
+    def accrue(self) -> None:
+        """A goal-biased iteration's grant (call once per `Connection.connect`)."""
+        self.credit = min(1.0, self.credit + 1.0 / (self.tries + 1))
+
+    def take(self) -> bool:
+        """Start an attempt now, if the allowance holds one (then it is spent)."""
+        if self.credit < 1.0:
+            return False
+        self.credit -= 1.0
+        self.tries += 1
+        return True
+
+
+@dataclass
 class Schedule:
     """Which strategies one solve may switch on by itself, which are on, and when each was
     switched on (``switched``: name -> iteration, recorded in the plan)."""
