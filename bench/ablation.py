@@ -36,7 +36,10 @@ settings resumes from it), the table is printed last.
     PYTHONPATH=src python bench/ablation.py [--models DIR] [--out FILE] [--seeds 5]
         [--anytime-seeds 3] [--limit 60] [--anytime 10] [--problems a,b] [--modes a,b]
         [--parent-cost-to-come]
-    python bench/ablation.py --table docs/ablation.json
+    python bench/ablation.py --table docs/ablation.json [--versus BASE.json]
+
+``--versus BASE.json`` also prints the default mode side by side with another results file
+(same settings, e.g. the parent commit's): success, CPU median and its ratio, first cost.
 """
 
 from __future__ import annotations
@@ -387,6 +390,26 @@ def table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def versus(results: dict, base: dict, mode: str = "default") -> str:
+    """A side-by-side table of ``mode`` in two results files (e.g. a commit and its parent,
+    same models and seeds): success, CPU median to the first solution and its ratio
+    (``results`` over ``base``), first cost over the optimum, per problem in both."""
+    lines = [f"{mode}: base | this run (CPU ratio: this run / base)", "",
+             "| problem | success | CPU median (s) | CPU ratio | first cost / opt |",
+             "|---|---|---|---|---|"]
+    for name, entry in results["problems"].items():
+        old = base["problems"].get(name)
+        f = summarise(entry, mode, results["settings"]["limit"])
+        b = "not run" if old is None else summarise(old, mode, base["settings"]["limit"])
+        if isinstance(f, str) or isinstance(b, str):
+            lines.append(f"| {name} | {b} / {f} | | | |")
+            continue
+        lines.append(f"| {name} | {b['success']} -> {f['success']} | "
+                     f"{b['cpu_s']:.3g} -> {f['cpu_s']:.3g} | {f['cpu_s'] / b['cpu_s']:.2f} | "
+                     f"{b['first_ratio']:.3g} -> {f['first_ratio']:.3g} |")
+    return "\n".join(lines)
+
+
 def _met(ok) -> str:
     return "met" if ok else "not met"  # a NaN (nothing solved) is not met
 
@@ -405,9 +428,13 @@ def main(argv: list[str] | None = None) -> dict:
                     help="plan.parent_cost_to_come on in every mode")
     ap.add_argument("--table", type=Path, default=None, metavar="JSON",
                     help="print the tables of a results file (docs/ablation.json); run nothing")
+    ap.add_argument("--versus", type=Path, default=None, metavar="JSON",
+                    help="also print the default mode side by side with this results file's")
     args = ap.parse_args(argv)
     results = json.loads(args.table.read_text()) if args.table else run(args)
     print(table(results))
+    if args.versus:
+        print("\n" + versus(results, json.loads(args.versus.read_text())))
     return results
 
 

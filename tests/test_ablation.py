@@ -71,3 +71,20 @@ def test_cost_by_kind_splits_a_paths_cost_into_time_and_effort_per_kind():
         "control": {"edges": 1, "duration": 0.5, "time": 1.0, "effort": 3.0, "max_abs_u": 1.2},
         "funnel": {"edges": 1, "duration": 2.0, "time": 4.0, "effort": 0.5, "max_abs_u": 0.3}}
     assert math.isclose(sum(r["time"] + r["effort"] for r in rows.values()), plan.path_cost)
+
+
+def test_versus_prints_both_runs_and_the_cpu_ratio_per_problem():
+    """Two hand-made results files: the ratio is this run's median CPU over the base's, an
+    unsolved seed counting as the limit (10 s)."""
+    def results(cpus, solved):
+        first = {str(i): {"solved": ok, "cpu_s": c, "cost": 2.0 * c if ok else None,
+                          "learned_share": 1.0, "extremal_share": 1.0}
+                 for i, (c, ok) in enumerate(zip(cpus, solved, strict=True))}
+        return {"settings": {"limit": 10.0},
+                "problems": {"p": {"optimum": {"value": 1.0},
+                                   "modes": {"default": {"first": first, "anytime": {}}}}}}
+
+    base = results([4.0, 8.0, 3.0], [True, True, False])  # median of 4, 8, 10: 8
+    new = results([1.0, 2.0, 3.0], [True, True, True])  # median 2
+    row = ablation.versus(new, base).splitlines()[-1]
+    assert row == "| p | 2/3 -> 3/3 | 8 -> 2 | 0.25 | 12 -> 4 |"
