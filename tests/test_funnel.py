@@ -133,3 +133,87 @@ def test_continuation_into_the_acrobots_upright_converges():
         # the RK4 grid is left
         assert np.linalg.norm(problem.goal_offset(end[:4])) < 0.1
     assert solved >= 15 and polished >= 9  # measured: 18 and 12
+
+
+def _brute_nearest(parts, offsets, scale, k, radius):
+    """The k nearest funnel states (weighted distance, global index) within ``radius`` over
+    every part, by computing every distance."""
+    states = np.concatenate([p.offsets for p in parts])
+    d = np.linalg.norm((offsets[:, None, :] - states[None]) * scale, axis=2)
+    order = np.argsort(d, axis=1)[:, :k]
+    dk = np.take_along_axis(d, order, axis=1)
+    return np.where(dk <= radius, dk, np.inf), order
+
+
+@pytest.fixture(scope="module")
+def growing(paper_model):
+    """The automatic funnel's connection on the paper's pendulum, small: 60 extremals,
+    doubling up to 240 after 2 calls in a row with no node near it."""
+    from rrtcolearn.planning.connections import FunnelConnection
+
+    prob = PlanningProblem.create(paper_model.system, [-np.pi, 0.0], [0.0, 0.0], 0.1)
+    planner = RRTCoLearn(prob, paper_model.functions, paper_model.planner_settings())
+    rng = np.random.default_rng(7)
+    run = planner.start(rng)
+    return planner, run.tree, lambda: FunnelConnection.build(
+        planner.propagator, rng, run.tree.weight, 60, limit=240, grow_after=2)
+
+
+def test_a_growing_funnel_doubles_while_no_node_is_near_it_up_to_its_limit(growing):
+    planner, tree, build = growing
+    conn = build()
+    radius = planner.settings.funnel_radius
+    # the tree's one node (hanging, at rest) is not within the radius of any funnel state
+    # while it grows: every call is idle
+    sims, states = [], []
+    for _ in range(6):
+        assert conn.connect(tree) is None
+        assert not np.isfinite(conn.dist[0, 0]) or conn.dist[0, 0] > radius
+        sims.append(conn.simulations)
+        states.append(conn.report()["funnel_states"])
+    assert sims == [60, 120, 120, 240, 240, 240]  # doubled at every 2nd idle call, then held
+    assert [len(p.goal_costates) <= n
+            for p, n in zip(conn.parts, (60, 60, 120), strict=True)] == [True] * 3
+    assert states[-1] == sum(len(p) for p in conn.parts) and conn.grown == 2
+    assert states[0] < states[1] < states[3]
+
+
+def test_nearest_over_the_parts_is_the_brute_force_nearest(growing):
+    planner, _, build = growing
+    conn = build()
+    conn.grow()
+    conn.grow()
+    assert len(conn.parts) == 3
+    radius = planner.settings.funnel_radius
+    every = np.concatenate([p.offsets for p in conn.parts])
+    rng = np.random.default_rng(1)
+    offsets = every[rng.choice(len(every), 40)] + rng.normal(0, 0.05, (40, 2))
+    d, i = conn.nearest(offsets, radius)
+    want_d, want_i = _brute_nearest(conn.parts, offsets, conn.funnel.scale, d.shape[1], radius)
+    assert np.allclose(d, want_d)
+    finite = np.isfinite(want_d)
+    assert np.array_equal(i[finite], want_i[finite])
+
+
+def test_growing_keeps_the_queried_nodes_nearest_states_over_all_parts(growing):
+    """Nodes queried before a growth get the new part's states where those are nearer
+    (without querying the old parts again)."""
+    planner, _, build = growing
+    conn = build()
+    radius = planner.settings.funnel_radius
+    rng = np.random.default_rng(2)
+    x = conn.funnel.states[rng.choice(len(conn.funnel), 30)] + rng.normal(0, 0.05, (30, 2))
+    conn._states, conn.queried = x, len(x)
+    conn.dist[:30], conn.index[:30] = conn.nearest(planner.problem.goal_offset(x), radius)
+    conn.grow()
+    conn.grow()
+    want_d, want_i = _brute_nearest(conn.parts, planner.problem.goal_offset(x),
+                                    conn.funnel.scale, conn.dist.shape[1], radius)
+    assert np.allclose(conn.dist[:30], want_d)
+    finite = np.isfinite(want_d)
+    assert np.array_equal(conn.index[:30][finite], want_i[finite])
+    # and steering from a global index reaches the state of that part
+    j = int(conn.index[0, 0])
+    p = int(np.searchsorted(conn.starts, j, side="right")) - 1
+    assert np.array_equal(np.concatenate([q.states for q in conn.parts])[j],
+                          conn.parts[p].states[j - conn.starts[p]])

@@ -205,3 +205,21 @@ def test_parent_cost_to_come_ranks_by_the_trees_cost_to_come(limited, monkeypatc
         want = [sum(tree.costs[i] for i in tree.path_to(int(k))[1:]) for k in nodes]
         np.testing.assert_allclose(out, want, rtol=1e-12)
     assert max(float(o.max()) for _, o in given if o.size) > 0.0  # nodes below the root
+
+
+def test_the_allowance_spaces_attempts_in_vain_ever_wider():
+    """(gains + 1) / (tries + 1) of an attempt per goal-biased iteration, no gains: the k-th
+    attempt comes at call k (k + 1) / 2 when a node is there at every call (counted here by
+    brute force over the calls), and idle calls bank at most one attempt."""
+    from rrtcolearn.planning.schedule import Allowance
+
+    a, calls = Allowance(), []
+    for call in range(1, 60):
+        a.accrue()
+        if a.take():
+            calls.append(call)
+    assert calls == [k * (k + 1) // 2 for k in range(1, 11)]
+    idle = Allowance(tries=5, waited=0)
+    for _ in range(100):  # no node to try: nothing taken
+        idle.accrue()
+    assert idle.take() and not idle.take()

@@ -198,11 +198,8 @@ class FunnelConnection:
         if q and len(part):
             offsets = self.propagator.problem.goal_offset(self._states[:q])
             d, i = part.nearest(offsets, FUNNEL_POINTS, self.propagator.settings.funnel_radius)
-            d_all = np.concatenate([self.dist[:q], d], axis=1)
-            i_all = np.concatenate([self.index[:q], i + self.starts[-1]], axis=1)
-            order = np.argsort(d_all, axis=1, kind="stable")[:, :FUNNEL_POINTS]
-            self.dist[:q] = np.take_along_axis(d_all, order, axis=1)
-            self.index[:q] = np.take_along_axis(i_all, order, axis=1)
+            self.dist[:q], self.index[:q] = _nearest_of(
+                [(self.dist[:q], self.index[:q]), (d, i + self.starts[-1])])
 
     def nearest(self, offsets: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """Weighted distances (N, FUNNEL_POINTS) from states given by their goal offsets to
@@ -214,11 +211,7 @@ class FunnelConnection:
             return (np.full((len(offsets), FUNNEL_POINTS), np.inf),
                     np.zeros((len(offsets), FUNNEL_POINTS), int))
         starts = [a for a, part in zip(self.starts, self.parts, strict=True) if len(part)]
-        d_all = np.concatenate([d for d, _ in found], axis=1)
-        i_all = np.concatenate([i + a for (_, i), a in zip(found, starts, strict=True)],
-                               axis=1)
-        order = np.argsort(d_all, axis=1, kind="stable")[:, :FUNNEL_POINTS]
-        return np.take_along_axis(d_all, order, axis=1), np.take_along_axis(i_all, order, axis=1)
+        return _nearest_of([(d, i + a) for (d, i), a in zip(found, starts, strict=True)])
 
     def steer(self, offset: np.ndarray, j: int, max_duration: float
               ) -> tuple[np.ndarray, float] | None:
@@ -282,6 +275,15 @@ class FunnelConnection:
 
     def note(self) -> str | None:
         return None
+
+
+def _nearest_of(found: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """The FUNNEL_POINTS nearest per row among several (distances, indices) answers, each
+    (N, FUNNEL_POINTS) and sorted by distance, ties to the earlier answer."""
+    d_all = np.concatenate([d for d, _ in found], axis=1)
+    i_all = np.concatenate([i for _, i in found], axis=1)
+    order = np.argsort(d_all, axis=1, kind="stable")[:, :FUNNEL_POINTS]
+    return np.take_along_axis(d_all, order, axis=1), np.take_along_axis(i_all, order, axis=1)
 
 
 class LQRConnection:

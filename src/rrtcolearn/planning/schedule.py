@@ -52,17 +52,18 @@ class Allowance:
     seed."""
 
     tries: int = 0
-    credit: float = 1.0
+    waited: int = 1  # goal-biased iterations since the last attempt (at most tries + 1)
 
     def accrue(self) -> None:
-        """A goal-biased iteration's grant (call once per `Connection.connect`)."""
-        self.credit = min(1.0, self.credit + 1.0 / (self.tries + 1))
+        """A goal-biased iteration's grant (call once per `Connection.connect`); counted in
+        whole iterations (tries + 1 of them make an attempt), so no rounding."""
+        self.waited = min(self.waited + 1, self.tries + 1)
 
     def take(self) -> bool:
         """Start an attempt now, if the allowance holds one (then it is spent)."""
-        if self.credit < 1.0:
+        if self.waited < self.tries + 1:
             return False
-        self.credit -= 1.0
+        self.waited = 0
         self.tries += 1
         return True
 
