@@ -356,8 +356,8 @@ class PlanConfig(_Section):
         None, ge=0, le=1_000_000, description="extremals integrated backwards from the goal "
         "at the start of each plan; in goal-biased iterations the node nearest one of their "
         "states is steered to the goal along it (continuation, then shooting); 0: the "
-        "paper's planner; none: 20 000 of them, built by the planner once shooting has "
-        "failed from 20 nodes")
+        "paper's planner; none: built by the planner when it switches shooting on, 2 500 "
+        "of them doubling up to 20 000 while no tree node is near it")
     funnel_radius: float = Field(
         0.3, gt=0, description="funnel connection only from nodes within this weighted "
         "distance of a funnel state")
