@@ -223,3 +223,26 @@ def test_the_allowance_spaces_attempts_in_vain_ever_wider():
     for _ in range(100):  # no node to try: nothing taken
         idle.accrue()
     assert idle.take() and not idle.take()
+
+
+def test_the_automatic_funnel_switches_on_with_shooting_and_not_while_exploring():
+    from rrtcolearn.planning.contracts import Progress
+    from rrtcolearn.planning.schedule import CONNECT_AFTER, Schedule
+    from rrtcolearn.planning.settings import PlannerSettings
+
+    auto = PlannerSettings()  # goal_connect, goal_funnel, goal_lqr: None (the planner's)
+    on = {"shooting": None, "funnel": None, "lqr": None}
+    for exploring, want in ((False, ["lqr", "shooting", "funnel"]), (True, ["lqr"])):
+        s = Schedule.start(auto, controls=exploring, learned=True, can_connect=True)
+        s.exploring = exploring
+        assert s.connections_due(Progress(1.0, iterations=7, since_nearer=CONNECT_AFTER - 1),
+                                 on) == []
+        assert s.connections_due(Progress(1.0, iterations=8, since_nearer=CONNECT_AFTER),
+                                 on) == want
+        assert s.switched == dict.fromkeys(want, 8)
+    # an explicit funnel size or 0 (off) leaves it to the settings
+    for size in (0, 500):
+        s = Schedule.start(PlannerSettings(goal_funnel=size), controls=False, learned=True,
+                           can_connect=True)
+        assert "funnel" not in s.connections_due(
+            Progress(1.0, since_nearer=CONNECT_AFTER), on)
