@@ -48,7 +48,7 @@ STAGES = {
     "expansion (all)": ("planning/rrt.py", "_expand"),
     "learned expansion": ("planning/learned.py", "steer"),
     "  learned draws' edges": ("planning/propagator.py", "extremal_edges"),
-    "  learned queries (J, U, V)": ("learn/models.py", "query"),
+    "  learned queries (V in order of J)": ("learn/models.py", "best_valid"),
     "random-control expansion": ("planning/controls.py", "run_batch"),
 }
 
