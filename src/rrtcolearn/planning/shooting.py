@@ -26,6 +26,9 @@ from rrtcolearn.systems.base import System
 _EPS = 1e-7  # relative finite-difference step of the costate coordinates
 _STEP_SIZES = (1.0, 0.5, 0.25, 0.1)  # backtracking line search, evaluated in one batch
 _LAND_STEP_SIZES = (1.0, 0.5, 0.25, 0.1, 0.03, 0.01)  # `land`'s
+# `multiple_shoot`'s dogleg trust radii, as multiples of the last accepted one (scaled
+# variables), tried in one batch
+_DOGLEG_RADII = np.array([2.0, 1.0, 0.5, 0.25, 0.1, 0.03, 0.01])
 
 
 def _norm(a: np.ndarray) -> np.ndarray | float:
@@ -73,11 +76,11 @@ class ShootingResult:
 
 def _endpoints(system: System, x0: np.ndarray, v: np.ndarray, w: float, dt: float
                ) -> tuple[np.ndarray, np.ndarray]:
-    """State and costate (B, 2n) at duration v[:, -1] from x0 with costates v[:, :-1],
-    interpolated between RK4 steps of signed size ``dt`` (negative: backwards in time), and
-    the state's rate of change with the duration (B, n); NaN rows where the integration
-    fails."""
-    n, b = len(x0), len(v)
+    """State and costate (B, 2n) at duration v[:, -1] from x0 (n,) or each row's own start
+    (B, n) with costates v[:, :-1], interpolated between RK4 steps of signed size ``dt``
+    (negative: backwards in time), and their rate of change with the duration (B, 2n); NaN
+    rows where the integration fails."""
+    n, b = x0.shape[-1], len(v)
     h = abs(dt)
     k = np.floor(v[:, -1] / h).astype(np.int64)
     frac = v[:, -1] / h - k
@@ -94,7 +97,7 @@ def _endpoints(system: System, x0: np.ndarray, v: np.ndarray, w: float, dt: floa
     ok = lengths >= k + 1
     with np.errstate(all="ignore"):  # rows that blew up are masked below
         z = before + frac[:, None] * (after - before)
-        rate = (after[:, :n] - before[:, :n]) / h
+        rate = (after - before) / h
     z[~ok] = np.nan
     rate[~ok] = np.nan
     return z, rate
@@ -151,7 +154,7 @@ def newton(system: System, x0: np.ndarray, lam0: np.ndarray, duration0: float,
         rp, _, _ = residual(probe)
         jac = np.empty((n + 1, n + 1))
         jac[:, :n] = ((rp[:n] - rp[n:]) / (2.0 * eps[:, None])).T
-        jac[:n, n] = rate
+        jac[:n, n] = rate[:n]
         jac[n, n] = 0.0
         if not np.isfinite(jac).all():
             return None
@@ -255,3 +258,220 @@ def land(system: System, x0: np.ndarray, lam0: np.ndarray, steps: int, target: n
             return None
         lam, r = cand[descends[0]], rc[descends[0]]
     return None
+
+
+@dataclass(frozen=True)
+class MultipleShootingResult:
+    """One extremal as M segments: each segment's start state (M, n; row 0 the fixed start)
+    and costate there (M, n), its duration in RK4 steps (M,), the residual norm of the
+    matching conditions and the Newton iterations of each phase (free time, on the grid)."""
+
+    states: np.ndarray
+    costates: np.ndarray
+    steps: np.ndarray
+    residual: float
+    iterations: tuple[int, int]
+
+
+def _ms_newton(system: System, x0: np.ndarray, lams: np.ndarray, states: np.ndarray,
+               durations: np.ndarray, terminal: Callable[[np.ndarray], np.ndarray],
+               free_time: bool, w: float, dt: float, max_duration: float, tolerance: float,
+               max_iterations: int, stop: Callable[[], bool] | None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int] | None:
+    """`multiple_shoot`'s Newton solve: (costates (M, n), interior states (M - 1, n),
+    durations (M,), residual norm, iterations) or None. With ``free_time`` the total
+    duration is an unknown (the segments keep their shares of it) and H*(x0, lambda_0) = 0
+    a condition; else the durations are fixed."""
+    m, n = lams.shape
+    h = abs(dt)
+    share = durations / durations.sum()
+    nl, nx = m * n, (m - 1) * n
+    size = nl + nx + int(free_time)
+    v = np.concatenate([lams.ravel(), states.ravel(),
+                        [float(np.clip(durations.sum(), m * h, max_duration))]
+                        if free_time else []])
+    rows_c = 2 * n * (m - 1)  # continuity rows, then n terminal rows, then H*
+
+    def unpack(vs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        b = len(vs)
+        lam = vs[:, :nl].reshape(b, m, n)
+        xs = np.concatenate([np.broadcast_to(x0, (b, 1, n)),
+                             vs[:, nl : nl + nx].reshape(b, m - 1, n)], axis=1)
+        durs = vs[:, -1:] * share[None] if free_time else np.broadcast_to(durations, (b, m))
+        return lam, xs, durs
+
+    def ends(xs: np.ndarray, lam: np.ndarray, durs: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+        # every segment of every candidate in one batched integration
+        z, rate = _endpoints(system, xs.reshape(-1, n),
+                             np.hstack([lam.reshape(-1, n), durs.reshape(-1, 1)]), w, dt)
+        return z, rate
+
+    def residual(vs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        b = len(vs)
+        lam, xs, durs = unpack(vs)
+        z, rate = ends(xs, lam, durs)
+        z, rate = z.reshape(b, m, 2 * n), rate.reshape(b, m, 2 * n)
+        r = np.empty((b, size))
+        with np.errstate(all="ignore"):
+            gap = np.concatenate([z[:, :-1, :n] - xs[:, 1:], z[:, :-1, n:] - lam[:, 1:]],
+                                 axis=2)
+            r[:, :rows_c] = gap.reshape(b, rows_c)
+            r[:, rows_c : rows_c + n] = terminal(z[:, -1])
+            if free_time:
+                r[:, -1] = _hamiltonian(system, x0, lam[:, 0], w)
+        return r, z, rate
+
+    r, z, rate = (a[0] for a in residual(v[None]))
+    norm = _norm(r)
+    radius = 1.0
+    for it in range(max_iterations + 1):
+        if not np.isfinite(norm):
+            return None
+        if norm <= tolerance:
+            lam, xs, durs = unpack(v[None])
+            return lam[0], xs[0, 1:], durs[0], norm, it
+        if it == max_iterations or (stop is not None and stop()):
+            return None
+        lam, xs, durs = unpack(v[None])
+        lam, xs, durs = lam[0], xs[0], durs[0]
+        # the Jacobian by central differences, block by block: segment i's end depends on
+        # its own start state (i >= 1) and costate only (and the total duration, through
+        # the state's and costate's rate); all probes of all segments in one integration
+        el = _EPS * np.maximum(1.0, np.abs(lam))  # (m, n)
+        ex = _EPS * np.maximum(1.0, np.abs(xs))
+        eye = np.eye(n)
+        p_x, p_lam, p_dur = [], [], []
+        for i in range(m):
+            for sign in (1.0, -1.0):
+                p_x.append(np.broadcast_to(xs[i], (n, n)))
+                p_lam.append(lam[i] + sign * el[i][:, None] * eye)
+                p_dur.append(np.full(n, durs[i]))
+            if i >= 1:
+                for sign in (1.0, -1.0):
+                    p_x.append(xs[i] + sign * ex[i][:, None] * eye)
+                    p_lam.append(np.broadcast_to(lam[i], (n, n)))
+                    p_dur.append(np.full(n, durs[i]))
+        zp, _ = ends(np.concatenate(p_x), np.concatenate(p_lam), np.concatenate(p_dur))
+        jac = np.zeros((size, size))
+        row = 0
+        for i in range(m):
+            d_lam = (zp[row : row + n] - zp[row + n : row + 2 * n]) / (2.0 * el[i][:, None])
+            row += 2 * n
+            d_x = None
+            if i >= 1:
+                d_x = (zp[row : row + n] - zp[row + n : row + 2 * n]) / (2.0 * ex[i][:, None])
+                plus_x, minus_x = zp[row : row + n], zp[row + n : row + 2 * n]
+                row += 2 * n
+            if i < m - 1:
+                rs = slice(2 * n * i, 2 * n * (i + 1))
+                jac[rs, i * n : (i + 1) * n] = d_lam.T
+                if d_x is not None:
+                    jac[rs, nl + (i - 1) * n : nl + i * n] = d_x.T
+                jac[2 * n * i + np.arange(n), nl + i * n + np.arange(n)] = -1.0
+                jac[2 * n * i + n + np.arange(n), (i + 1) * n + np.arange(n)] = -1.0
+                if free_time:
+                    jac[rs, -1] = share[i] * rate[i]
+                continue
+            # the last segment: the terminal conditions through its end
+            ts = slice(rows_c, rows_c + n)
+            base = row - (4 * n if i >= 1 else 2 * n)
+            tp = terminal(zp[base : base + n])
+            tm = terminal(zp[base + n : base + 2 * n])
+            jac[ts, i * n : (i + 1) * n] = ((tp - tm) / (2.0 * el[i][:, None])).T
+            if d_x is not None:
+                jac[ts, nl + (i - 1) * n : nl + i * n] = \
+                    ((terminal(plus_x) - terminal(minus_x)) / (2.0 * ex[i][:, None])).T
+            if free_time:
+                dz = _EPS * max(1.0, float(durs[i])) * rate[i]
+                jac[ts, -1] = share[i] * (terminal((z[i] + dz)[None])[0]
+                                          - terminal((z[i] - dz)[None])[0]) \
+                    / (2.0 * _EPS * max(1.0, float(durs[i])))
+        if free_time:
+            probe = lam[0] + np.concatenate([el[0][:, None] * eye, -el[0][:, None] * eye])
+            with np.errstate(all="ignore"):
+                hs = _hamiltonian(system, x0, probe, w)
+            jac[-1, :n] = (hs[:n] - hs[n:]) / (2.0 * el[0])
+        if not np.isfinite(jac).all():
+            return None
+        step = _solve(jac, -r)
+        # Powell's dogleg in the unknowns scaled by their size (at least 1): Newton's step
+        # where it lies within the trust radius, else the path towards the Cauchy point
+        # (steepest descent of |r|^2, a descent direction even where saturated inputs make
+        # the Jacobian near singular); several radii in one batch, the best kept, its
+        # radius the next one's start. `newton`'s trust region with a line search instead:
+        # 2 of 12 first paths converged against 4 (pendulum at |u| <= 1, quadrotor,
+        # sparse_rrt acrobot and cart-pole, 3 seeds each; docs/anytime.md)
+        d = np.maximum(1.0, np.abs(v))
+        js = jac * d[None, :]
+        ny = step / d
+        g = np.sum(js * r[:, None], axis=0)
+        jg = np.sum(js * g[None, :], axis=1)
+        with np.errstate(all="ignore"):  # a zero gradient: NaN candidates, rejected below
+            cy = -(np.sum(g * g) / np.sum(jg * jg)) * g
+        nn, nc = _norm(ny), _norm(cy)
+        dd = ny - cy
+        aa, bb = np.sum(dd * dd), 2.0 * np.sum(cy * dd)
+        radii = radius * _DOGLEG_RADII
+        ys = []
+        for rad in radii:
+            if nn <= rad:
+                ys.append(ny)
+            elif nc >= rad:
+                ys.append(cy * (rad / nc))
+            else:  # where the segment from the Cauchy point to Newton's leaves the radius
+                cc = np.sum(cy * cy) - rad * rad
+                ys.append(cy + (-bb + np.sqrt(bb * bb - 4.0 * aa * cc)) / (2.0 * aa) * dd)
+        cand = v[None] + np.array(ys) * d[None]
+        if free_time:
+            cand[:, -1] = np.clip(cand[:, -1], m * h, max_duration)
+        rc, zc, ratec = residual(cand)
+        with np.errstate(all="ignore"):
+            norms = _norm(rc)
+        norms[~np.isfinite(norms)] = np.inf
+        best = int(np.argmin(norms))
+        if not norms[best] < norm:
+            return None
+        v, r, z, rate, norm = cand[best], rc[best], zc[best], ratec[best], float(norms[best])
+        radius = float(radii[best])
+    return None
+
+
+def multiple_shoot(system: System, x0: np.ndarray, costates: np.ndarray, states: np.ndarray,
+                   durations: np.ndarray, terminal: Callable[[np.ndarray], np.ndarray], *,
+                   time_weight: float, dt: float, max_duration: float,
+                   tolerance: float = 1e-6, grid_tolerance: float = 1e-8,
+                   max_iterations: int = 30, stop: Callable[[], bool] | None = None
+                   ) -> MultipleShootingResult | None:
+    """One extremal from ``x0`` (n,) to where ``terminal`` vanishes, by indirect multiple
+    shooting over M segments.
+
+    Unknowns: the costate at each segment's start (``costates`` (M, n), the guess), the
+    states where segments 1..M-1 start (``states`` (M - 1, n)) and the total duration (the
+    segments keep their shares of ``durations`` (M,)). Conditions: state and costate
+    continuity where segments meet, ``terminal(z_end (B, 2n)) -> (B, n)`` = 0 at the last
+    segment's end (state and costate), and H*(x0, lambda_0) = 0 (free final time; H* is
+    constant along an extremal). Newton's method with Powell's dogleg trust region (several
+    radii tried in one batch), the Jacobian by central differences in one batched
+    integration per iteration. Then each segment's duration is rounded to the RK4 grid and
+    the conditions but H* = 0 are solved again with those durations fixed, to
+    ``grid_tolerance`` (as
+    `land`: H* is then off zero by about the rounding). ``stop()`` is asked before each
+    Newton iteration (True: give up). None when either phase fails."""
+    x0 = np.asarray(x0, dtype=np.float64)
+    lams = np.asarray(costates, dtype=np.float64)
+    xs = np.asarray(states, dtype=np.float64).reshape(len(lams) - 1, len(x0))
+    durs = np.asarray(durations, dtype=np.float64)
+    w, h = float(time_weight), abs(dt)
+    free = _ms_newton(system, x0, lams, xs, durs, terminal, True, w, dt, max_duration,
+                      tolerance, max_iterations, stop)
+    if free is None:
+        return None
+    lams, xs, durs, _, it1 = free
+    steps = np.maximum(1, np.rint(durs / h)).astype(np.int64)
+    grid = _ms_newton(system, x0, lams, xs, steps * h, terminal, False, w, dt, max_duration,
+                      grid_tolerance, max_iterations, stop)
+    if grid is None:
+        return None
+    lams, xs, _, res, it2 = grid
+    return MultipleShootingResult(np.vstack([x0[None], xs]), lams, steps, res, (it1, it2))
