@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from rrtcolearn.integrate import rollout_batch
@@ -61,6 +62,47 @@ def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             acc -= m[k, j] * x[j]
         x[k] = acc / m[k, k]
     return x
+
+
+@numba.njit(cache=True)
+def _eliminate_sparse(m: np.ndarray, tiny: float) -> bool:
+    """`_solve_sparse`'s elimination of ``m`` = [a | b] in place, compiled (scalar loops, no
+    BLAS: the same bits on every CPU), skipping the zeros of a sparse ``a``; False where a
+    pivot vanishes."""
+    n = m.shape[0]
+    for k in range(n):
+        p, big = k, abs(m[k, k])
+        for i in range(k + 1, n):
+            if abs(m[i, k]) > big:
+                p, big = i, abs(m[i, k])
+        if not big > tiny:
+            return False
+        if p != k:
+            for j in range(k, n + 1):
+                m[k, j], m[p, j] = m[p, j], m[k, j]
+        for i in range(k + 1, n):
+            if m[i, k] != 0.0:
+                f = m[i, k] / m[k, k]
+                for j in range(k, n + 1):
+                    if m[k, j] != 0.0:
+                        m[i, j] -= f * m[k, j]
+    for k in range(n - 1, -1, -1):
+        acc = m[k, n]
+        for j in range(k + 1, n):
+            acc -= m[k, j] * m[j, n]
+        m[k, n] = acc / m[k, k]
+    return True
+
+
+def _solve_sparse(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """`_solve` for `multiple_shoot`'s sparse Jacobians of some hundred unknowns, compiled:
+    the same elimination with partial pivoting, zeros skipped; LAPACK's least squares where
+    a pivot vanishes."""
+    m = np.ascontiguousarray(np.hstack([a, b[:, None]]), dtype=np.float64)
+    scale = float(np.max(np.abs(a))) if a.size else 0.0
+    if not _eliminate_sparse(m, 1e-13 * scale):
+        return np.linalg.lstsq(a, b, rcond=None)[0]
+    return m[:, -1].copy()
 
 
 @dataclass(frozen=True)
@@ -291,6 +333,10 @@ def _ms_newton(system: System, x0: np.ndarray, lams: np.ndarray, states: np.ndar
                         [float(np.clip(durations.sum(), m * h, max_duration))]
                         if free_time else []])
     rows_c = 2 * n * (m - 1)  # continuity rows, then n terminal rows, then H*
+    order = np.concatenate([np.arange(n)] + [np.r_[nl + (i - 1) * n + np.arange(n),
+                                                    i * n + np.arange(n)]
+                                             for i in range(1, m)]
+                           + ([np.array([size - 1])] if free_time else [])).astype(np.int64)
 
     def unpack(vs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         b = len(vs)
@@ -341,52 +387,43 @@ def _ms_newton(system: System, x0: np.ndarray, lams: np.ndarray, states: np.ndar
         el = _EPS * np.maximum(1.0, np.abs(lam))  # (m, n)
         ex = _EPS * np.maximum(1.0, np.abs(xs))
         eye = np.eye(n)
-        p_x, p_lam, p_dur = [], [], []
-        for i in range(m):
-            for sign in (1.0, -1.0):
-                p_x.append(np.broadcast_to(xs[i], (n, n)))
-                p_lam.append(lam[i] + sign * el[i][:, None] * eye)
-                p_dur.append(np.full(n, durs[i]))
-            if i >= 1:
-                for sign in (1.0, -1.0):
-                    p_x.append(xs[i] + sign * ex[i][:, None] * eye)
-                    p_lam.append(np.broadcast_to(lam[i], (n, n)))
-                    p_dur.append(np.full(n, durs[i]))
-        zp, _ = ends(np.concatenate(p_x), np.concatenate(p_lam), np.concatenate(p_dur))
+        sign = np.array([1.0, -1.0])[None, :, None, None]
+        # costate probes of every segment (m, +-, n, n), then state probes of segments 1..
+        lam_p = lam[:, None, None, :] + sign * (el[:, None, :, None] * eye)
+        x_p = xs[1:, None, None, :] + sign * (ex[1:, None, :, None] * eye)
+        starts = np.concatenate([np.broadcast_to(xs[:, None, None, :], lam_p.shape).reshape(-1, n),
+                                 x_p.reshape(-1, n)])
+        costs = np.concatenate([lam_p.reshape(-1, n), np.broadcast_to(
+            lam[1:, None, None, :], x_p.shape).reshape(-1, n)])
+        times = np.concatenate([np.repeat(durs, 2 * n), np.repeat(durs[1:], 2 * n)])
+        zp, _ = ends(starts, costs, times)
+        zl = zp[: 2 * n * m].reshape(m, 2, n, 2 * n)
+        zx = zp[2 * n * m :].reshape(m - 1, 2, n, 2 * n)
+        d_lam = (zl[:, 0] - zl[:, 1]) / (2.0 * el[:, :, None])  # (m, n wrt, 2n of z)
+        d_x = (zx[:, 0] - zx[:, 1]) / (2.0 * ex[1:, :, None])
         jac = np.zeros((size, size))
-        row = 0
-        for i in range(m):
-            d_lam = (zp[row : row + n] - zp[row + n : row + 2 * n]) / (2.0 * el[i][:, None])
-            row += 2 * n
-            d_x = None
+        idx = np.arange(n)
+        for i in range(m - 1):
+            rs = slice(2 * n * i, 2 * n * (i + 1))
+            jac[rs, i * n : (i + 1) * n] = d_lam[i].T
             if i >= 1:
-                d_x = (zp[row : row + n] - zp[row + n : row + 2 * n]) / (2.0 * ex[i][:, None])
-                plus_x, minus_x = zp[row : row + n], zp[row + n : row + 2 * n]
-                row += 2 * n
-            if i < m - 1:
-                rs = slice(2 * n * i, 2 * n * (i + 1))
-                jac[rs, i * n : (i + 1) * n] = d_lam.T
-                if d_x is not None:
-                    jac[rs, nl + (i - 1) * n : nl + i * n] = d_x.T
-                jac[2 * n * i + np.arange(n), nl + i * n + np.arange(n)] = -1.0
-                jac[2 * n * i + n + np.arange(n), (i + 1) * n + np.arange(n)] = -1.0
-                if free_time:
-                    jac[rs, -1] = share[i] * rate[i]
-                continue
-            # the last segment: the terminal conditions through its end
-            ts = slice(rows_c, rows_c + n)
-            base = row - (4 * n if i >= 1 else 2 * n)
-            tp = terminal(zp[base : base + n])
-            tm = terminal(zp[base + n : base + 2 * n])
-            jac[ts, i * n : (i + 1) * n] = ((tp - tm) / (2.0 * el[i][:, None])).T
-            if d_x is not None:
-                jac[ts, nl + (i - 1) * n : nl + i * n] = \
-                    ((terminal(plus_x) - terminal(minus_x)) / (2.0 * ex[i][:, None])).T
-            if free_time:
-                dz = _EPS * max(1.0, float(durs[i])) * rate[i]
-                jac[ts, -1] = share[i] * (terminal((z[i] + dz)[None])[0]
-                                          - terminal((z[i] - dz)[None])[0]) \
-                    / (2.0 * _EPS * max(1.0, float(durs[i])))
+                jac[rs, nl + (i - 1) * n : nl + i * n] = d_x[i - 1].T
+            jac[2 * n * i + idx, nl + i * n + idx] = -1.0
+            jac[2 * n * i + n + idx, (i + 1) * n + idx] = -1.0
+        if free_time:
+            jac[:rows_c, -1] = (share[:-1, None] * rate[:-1]).ravel()
+        # the last segment: the terminal conditions through its end
+        ts = slice(rows_c, rows_c + n)
+        t = terminal(zl[-1].reshape(2 * n, 2 * n))
+        jac[ts, (m - 1) * n : m * n] = ((t[:n] - t[n:]) / (2.0 * el[-1][:, None])).T
+        if m >= 2:
+            t = terminal(zx[-1].reshape(2 * n, 2 * n))
+            jac[ts, nl + (m - 2) * n : nl + (m - 1) * n] = \
+                ((t[:n] - t[n:]) / (2.0 * ex[-1][:, None])).T
+        if free_time:
+            dz = _EPS * max(1.0, float(durs[-1]))
+            t = terminal(np.stack([z[-1] + dz * rate[-1], z[-1] - dz * rate[-1]]))
+            jac[ts, -1] = share[-1] * (t[0] - t[1]) / (2.0 * dz)
         if free_time:
             probe = lam[0] + np.concatenate([el[0][:, None] * eye, -el[0][:, None] * eye])
             with np.errstate(all="ignore"):
@@ -394,7 +431,10 @@ def _ms_newton(system: System, x0: np.ndarray, lams: np.ndarray, states: np.ndar
             jac[-1, :n] = (hs[:n] - hs[n:]) / (2.0 * el[0])
         if not np.isfinite(jac).all():
             return None
-        step = _solve(jac, -r)
+        # the unknowns interleaved (lambda_0, x_1, lambda_1, x_2, ...; T last): the rows of
+        # segment i then touch a band of columns, and the sparse elimination stays cheap
+        step = np.empty(size)
+        step[order] = _solve_sparse(jac[:, order], -r)
         # Powell's dogleg in the unknowns scaled by their size (at least 1): Newton's step
         # where it lies within the trust radius, else the path towards the Cauchy point
         # (steepest descent of |r|^2, a descent direction even where saturated inputs make
