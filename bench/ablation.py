@@ -49,6 +49,7 @@ import statistics
 import sys
 import time
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -248,26 +249,12 @@ def anytime(planner, seed: int, budget: float) -> dict:
     from rrtcolearn.planning.improve import shortcut
     from rrtcolearn.planning.termination import TerminationCondition
 
-    # what the multiple-shooting step did, over every improvement of the run
-    ms = {"tries": 0, "converged": 0, "kept": 0, "stopped": 0}
-
-    def counted(plan, stop):
-        out = shortcut(planner, plan, stop)
-        rec = out.extra.get("multiple_shooting")
-        if rec is not None and rec["segments"] >= 2:
-            ms["tries"] += 1
-            ms["converged"] += rec["converged"]
-            ms["kept"] += rec["kept"]
-            ms["stopped"] += rec["why"] == "stopped"
-        return out
-
-    counted.__name__ = "shortcut"
     p = solve_with_restarts(planner.solve, TerminationCondition(None, None, budget), seed,
-                            improve=counted, narrowest=planner.narrowest_control_scale())
+                            improve=partial(shortcut, planner),
+                            narrowest=planner.narrowest_control_scale())
     a = p.extra["anytime"]
     return {"solved": bool(p.solved), "cost": float(p.path_cost) if p.solved else None,
-            "first_cost": a["first_solution_cost"], "solves": a["solves"],
-            "multiple_shooting": ms}
+            "first_cost": a["first_solution_cost"], "solves": a["solves"]}
 
 
 def _write_json(path: Path, data) -> None:
