@@ -70,3 +70,32 @@ def test_the_tree_rebuilt_from_its_leaf_order_is_the_same(n):
         bad[0] = bad[1]
         with pytest.raises(ValueError, match="permutation"):
             NeighbourIndex(points, bad)
+
+
+def _boxes_reference(data, n_inner, lo_of, hi_of):
+    """Each node's bounding box written plainly: a leaf's least and greatest coordinates
+    of its rows, an inner node's the least and greatest of its two children's."""
+    box = np.empty((len(lo_of), 2, data.shape[1]))
+    for node in range(len(lo_of) - 1, -1, -1):
+        if node >= n_inner:
+            rows = data[lo_of[node]:hi_of[node]]
+            box[node, 0] = rows.min(axis=0) if len(rows) else np.inf
+            box[node, 1] = rows.max(axis=0) if len(rows) else -np.inf
+        else:
+            a, b = 2 * node + 1, 2 * node + 2
+            box[node, 0] = np.minimum(box[a, 0], box[b, 0])
+            box[node, 1] = np.maximum(box[a, 1], box[b, 1])
+    return box
+
+
+@pytest.mark.parametrize("n, dim", [(1, 3), (33, 2), (1000, 7), (5000, 8)])
+def test_node_boxes_are_the_plain_minima_and_maxima(n, dim):
+    from rrtcolearn.learn.neighbours import _boxes, _build, _layout
+
+    rng = np.random.default_rng(n)
+    points = rng.normal(size=(n, dim))
+    points[::7, 0] = 0.0  # repeated coordinates, signed zeros
+    points[::11, -1] = -0.0
+    data = _build(points, 32)[0]
+    layout = _layout(n, 32)
+    assert _boxes(data, *layout).tobytes() == _boxes_reference(data, *layout).tobytes()

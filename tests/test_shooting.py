@@ -86,3 +86,98 @@ def test_land_returns_none_short_of_its_tolerance():
     assert found is not None
     end = rk4_numpy(np.r_[x0, found, 0.0], 1.0, 0.01, 5)[-1, :2]
     assert np.abs(end - target).max() < 1e-9
+
+
+def _solve_reference(a, b):
+    """Gaussian elimination with partial pivoting in numpy's elementwise operations (the
+    solver before it was compiled): the compiled one must give the same bits."""
+    m = np.hstack([a, b[:, None]]).astype(np.float64)
+    n = len(b)
+    scale = float(np.max(np.abs(a)))
+    for k in range(n):
+        p = k + int(np.argmax(np.abs(m[k:, k])))
+        if not abs(m[p, k]) > 1e-13 * scale:
+            return np.linalg.lstsq(a, b, rcond=None)[0]
+        if p != k:
+            m[[k, p]] = m[[p, k]]
+        m[k + 1:] -= (m[k + 1:, k] / m[k, k])[:, None] * m[k]
+    x = np.zeros(n)
+    for k in range(n - 1, -1, -1):
+        acc = m[k, n]
+        for j in range(k + 1, n):
+            acc -= m[k, j] * x[j]
+        x[k] = acc / m[k, k]
+    return x
+
+
+def test_the_compiled_linear_solve_has_the_bits_of_the_elementwise_one():
+    from rrtcolearn.planning.shooting import _solve
+
+    rng = np.random.default_rng(0)
+    for trial in range(400):
+        n = 2 + trial % 6
+        a = rng.normal(size=(n, n)) * 10.0 ** rng.uniform(-6, 6, size=(n, n))
+        if trial % 7 == 0:
+            a[:, -1] = 0.0  # the Newton Jacobian's structure: the duration's column
+            a[-1, -1] = 0.0
+            a[:-1, -1] = rng.normal(size=n - 1)
+        b = rng.normal(size=n)
+        x = _solve(a.copy(), b.copy())
+        assert x.tobytes() == _solve_reference(a, b).tobytes()
+        assert np.allclose(a @ x, b, rtol=1e-6, atol=1e-6 * np.abs(a).max())
+    # singular: least squares, as before
+    a = np.array([[1.0, 2.0], [2.0, 4.0]])
+    b = np.array([1.0, 2.0])
+    assert np.array_equal(_solve(a, b), np.linalg.lstsq(a, b, rcond=None)[0])
+
+
+def test_endpoints_interpolate_between_rk4_steps_of_an_integrator_written_here():
+    """States and costates at durations between RK4 steps (forwards and backwards), their
+    state rates, and NaN rows past an integration's end, against `rk4_numpy` and linear
+    interpolation by hand."""
+    from rrtcolearn.planning.shooting import _endpoints
+
+    system = make("pendulum")
+    x0 = np.array([-2.5, 0.4])
+    for dt in (DT, -DT):
+        v = np.array([[0.7, -0.3, 0.0], [0.7, -0.3, 0.004], [-1.2, 0.5, 0.237],
+                      [0.1, 0.9, 0.5]])
+        z, rate = _endpoints(system, x0, v, 1.0, dt)
+        for row, (lam1, lam2, t) in enumerate(v):
+            k = int(np.floor(t / DT))
+            traj = rk4_numpy(np.r_[x0, lam1, lam2, 0.0], 1.0, dt, k + 1)
+            frac = t / DT - k
+            want = traj[k, :4] + frac * (traj[k + 1, :4] - traj[k, :4])
+            assert np.allclose(z[row], want, rtol=1e-12, atol=1e-12)
+            assert np.allclose(rate[row], (traj[k + 1, :2] - traj[k, :2]) / DT, rtol=1e-9,
+                               atol=1e-9)
+    # a costate so large that the integration overflows: that row is NaN, the others not
+    v = np.array([[1e200, 1e200, 0.5], [0.7, -0.3, 0.05]])
+    z, rate = _endpoints(system, x0, v, 1.0, DT)
+    assert np.isnan(z[0]).all() and np.isnan(rate[0]).all()
+    assert np.isfinite(z[1]).all() and np.isfinite(rate[1]).all()
+
+
+def test_load_kernels_loads_shootings_compiled_functions_with_a_solves_types():
+    """After `load_kernels(..., shooting=True)` (every solve that may shoot, before its
+    clock) a shot and a landing add no compiled signature."""
+    from rrtcolearn.planning import shooting
+    from rrtcolearn.planning.rrt import load_kernels
+    from rrtcolearn.planning.shooting import land
+
+    system = make("pendulum")
+    load_kernels(system, shooting=True)
+
+    def signatures():
+        return [len(shooting._eliminate.signatures), len(shooting._interpolate.signatures)]
+
+    before = signatures()
+    assert all(before)
+    x0, target = np.array([-2.5, 0.4]), np.array([-2.3, 0.9])
+    res = shoot(system, x0, np.array([0.4]), 0.5, offset_to(target), time_weight=1.0, dt=DT,
+                max_duration=3.0, tolerance=1e-4)
+    assert res is not None
+    lam, _ = system.costate_from_params(x0[None], res.params[None], 1.0)
+    land(system, x0, lam[0], res.steps, target, time_weight=1.0, dt=DT, tolerance=1e-9)
+    land(system, target, lam[0], res.steps, x0, time_weight=1.0, dt=-DT, tolerance=1e-9)
+    assert signatures() == before

@@ -727,9 +727,9 @@ def _periodic_copies(X: np.ndarray, periodic, scale: np.ndarray, threshold: floa
         column = X[source, j]  # (copies so far shift other angles, not this one)
         parts_s, parts_t = [source], [turns]
         for near, sign in ((column < lo + pad, 1), (column >= hi - pad, -1)):
-            shifted = turns[near]
+            shifted = np.compress(near, turns, axis=0)  # (as turns[near], in less time)
             shifted[:, a] = sign
-            parts_s.append(source[near])
+            parts_s.append(np.compress(near, source))
             parts_t.append(shifted)
         source, turns = np.concatenate(parts_s), np.concatenate(parts_t)
     return source, turns

@@ -74,22 +74,26 @@ def _layout(n, leaf_size):
 @numba.njit(cache=True)
 def _boxes(data, n_inner, lo_of, hi_of):
     """Each node's tight bounding box (least and greatest coordinates) of its points in leaf
-    order ``data``, built up from the leaves."""
+    order ``data``, built up from the leaves: a leaf's one coordinate at a time in locals
+    (each bound read and written once, not per point)."""
     n_nodes, dim = lo_of.shape[0], data.shape[1]
     box = np.empty((n_nodes, 2, dim))
     for node in range(n_nodes - 1, -1, -1):
         if node >= n_inner:
+            lo, hi = lo_of[node], hi_of[node]
             for j in range(dim):
-                box[node, 0, j] = np.inf
-                box[node, 1, j] = -np.inf
-            for r in range(lo_of[node], hi_of[node]):
-                for j in range(dim):
-                    box[node, 0, j] = min(box[node, 0, j], data[r, j])
-                    box[node, 1, j] = max(box[node, 1, j], data[r, j])
+                least, greatest = np.inf, -np.inf
+                for r in range(lo, hi):
+                    v = data[r, j]
+                    least = min(least, v)
+                    greatest = max(greatest, v)
+                box[node, 0, j] = least
+                box[node, 1, j] = greatest
         else:
+            a, b = 2 * node + 1, 2 * node + 2
             for j in range(dim):
-                box[node, 0, j] = min(box[2 * node + 1, 0, j], box[2 * node + 2, 0, j])
-                box[node, 1, j] = max(box[2 * node + 1, 1, j], box[2 * node + 2, 1, j])
+                box[node, 0, j] = min(box[a, 0, j], box[b, 0, j])
+                box[node, 1, j] = max(box[a, 1, j], box[b, 1, j])
     return box
 
 

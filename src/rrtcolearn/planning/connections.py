@@ -87,6 +87,9 @@ class ShootingConnection:
         self._lam, self._z0 = np.empty(n), np.empty(2 * n + 1)
         self.tried = np.zeros(256, dtype=bool)
         self.failed = 0
+        # per tree node its weighted squared goal distance (rows filled up to `queried`)
+        self.d2 = np.full(256, np.inf)
+        self.queried = 0
 
     def connect(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
         """An edge from the nearest untried node to the goal by shooting, or None.
@@ -99,17 +102,21 @@ class ShootingConnection:
         prob, s = self.propagator.problem, self.propagator.settings
         m = tree.data.n_nodes
         self.tried = tried = grown(self.tried, m, False)
+        self.d2 = grown(self.d2, m, np.inf)
         before = int(tried[:m].sum())
         states = tree.states
-        offset = prob.goal_offset(states)
-        wd = prob.goal_residual(states) * tree.weight
-        d2 = np.einsum("ij,ij->i", wd, wd)
+        if self.queried < m:  # the nodes added since the last call
+            wd = prob.goal_residual(states[self.queried : m]) * tree.weight
+            self.d2[self.queried : m] = np.einsum("ij,ij->i", wd, wd)
+            self.queried = m
+        d2 = self.d2[:m].copy()
         d2[tried[:m] | (d2 > s.connect_reach**2)] = np.inf
         node = int(np.argmin(d2))
         if np.isfinite(d2[node]):
             tried[node] = True
             x0 = states[node]
-            guess = self.model.query(goal_query(x0, tree.shifts[node], offset[node]))[1][0]
+            offset = prob.goal_offset(x0)[0]
+            guess = self.model.query(goal_query(x0, tree.shifts[node], offset))[1][0]
             for factor in (1.0, 2.0, 4.0, 8.0):
                 duration = min(max(guess[-1], s.dt) * factor, s.max_duration)
                 edge = shoot_edge(self.propagator, x0, guess[:-1], duration, s.max_duration,

@@ -111,8 +111,12 @@ class GoalFunnel:
         scale = np.asarray(scale, dtype=np.float64)
         from scipy.spatial import cKDTree  # (here: a plan's start-up does not import it)
 
+        # split at the midpoint of the widest side, without the median's partial sorts, and
+        # no shrinking of the nodes' boxes: a faster build of the same points, and the same
+        # neighbours and distances for every query (an exact search either way)
+        index = cKDTree(offsets * scale, balanced_tree=False, compact_nodes=False)
         return cls(system, goal, states, sims.astype(np.int64), steps.astype(np.int64), lam,
-                   offsets, scale, cKDTree(offsets * scale), float(time_weight), float(dt))
+                   offsets, scale, index, float(time_weight), float(dt))
 
     def __len__(self) -> int:
         return len(self.states)

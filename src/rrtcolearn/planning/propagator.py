@@ -154,15 +154,21 @@ class Propagator:
         steps = np.maximum(1, np.rint(params[:, -1] / s.dt)).astype(np.int64)
         traj, u_all, starts, codes = rollout_draws(sys, x0, costates, steps, s.time_weight,
                                                    s.dt, *self.box, prob.u_max)
-        kept = np.flatnonzero(codes == 0)
-        rows = np.concatenate([np.arange(starts[c] + 1, starts[c] + 1 + steps[c])
-                               for c in kept]) if kept.size else np.empty(0, np.int64)
-        goal_hit = np.zeros(len(traj), dtype=bool)
         valid = np.ones(len(traj), dtype=bool)
-        if rows.size:
-            goal_hit[rows] = self.goal_mask(traj[rows, :n])
-            if prob.validity:
-                valid[rows] = prob.validity(traj[rows, :n])
+        if self.ball is not None and not prob.validity:
+            # a goal ball and nothing else to ask: one pass over every row (those of draws
+            # rejected, or of states before a draw's first, are never read)
+            with np.errstate(all="ignore"):
+                goal_hit = self.goal_mask(traj[:, :n])
+        else:
+            kept = np.flatnonzero(codes == 0)
+            rows = np.concatenate([np.arange(starts[c] + 1, starts[c] + 1 + steps[c])
+                                   for c in kept]) if kept.size else np.empty(0, np.int64)
+            goal_hit = np.zeros(len(traj), dtype=bool)
+            if rows.size:
+                goal_hit[rows] = self.goal_mask(traj[rows, :n])
+                if prob.validity:
+                    valid[rows] = prob.validity(traj[rows, :n])
         directed = aim is not None
         if not directed:
             aim = weight = np.zeros(n)

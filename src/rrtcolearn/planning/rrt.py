@@ -45,6 +45,7 @@ from rrtcolearn.planning.schedule import (
     Schedule,
 )
 from rrtcolearn.planning.settings import PlannerSettings
+from rrtcolearn.planning.shooting import compiled_kernels as shooting_kernels
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan, PlannerData
 from rrtcolearn.systems.base import System
@@ -127,7 +128,8 @@ class RRTCoLearn:
             controls.scale = float(control_scale)
         # compiled code this solve may call and no earlier one loaded: before the clock
         load_kernels(sys, explore=controls is not None and s.control_edges is not False
-                     and controls.compiled, lqr=s.goal_lqr is not False)
+                     and controls.compiled, lqr=s.goal_lqr is not False,
+                     shooting=self.model is not None and sys.params_from_costate is not None)
         rng = np.random.default_rng(seed)
         cpu0 = time.thread_time()
         termination.start()
@@ -317,14 +319,17 @@ class RRTCoLearn:
         return plan
 
 
-def load_kernels(system: System, explore: bool = False, lqr: bool = False) -> None:
+def load_kernels(system: System, explore: bool = False, lqr: bool = False,
+                 shooting: bool = False) -> None:
     """Load the system's compiled kernels that a plan calls and this process has not loaded
     yet (numba's on-disk cache; compiled and cached when absent, once per system and
     machine), so that no plan spends its time limit, or its CPU figure, on them.
 
     `RRTCoLearn.solve` calls it before its clock starts, with what that solve may call: the
     compiled random-control iterations (``explore``: `integrate.explore_jit`, about 9 s to
-    compile) and the LQR goal connection's loop (``lqr``: `integrate.closed_loop_jit`).
+    compile), the LQR goal connection's loop (``lqr``: `integrate.closed_loop_jit`) and
+    shooting's linear solve and interpolation (``shooting``: `shooting._eliminate`,
+    `shooting._interpolate`; the goal connections and the learned edges' refinement).
     `pipeline` runs a throwaway solve when a model is fitted or loaded, so the first
     compiled call of a process (it also initialises numba's compiler, about 0.2 s) and the
     cache loads count as the model's load, not as the first plan's. Each kernel
@@ -358,6 +363,8 @@ def load_kernels(system: System, explore: bool = False, lqr: bool = False) -> No
         calls.append((system.closed_loop_jit, lambda: system.closed_loop_jit(
             x, x.copy(), np.zeros(m), np.zeros((m, n)), np.zeros((n, n)), -np.ones(m),
             np.ones(m), np.zeros(n, bool), 0.01, 0, -inf, inf)))
+    if shooting:
+        calls += shooting_kernels(system)
     for kernel, call in calls:
         if kernel is None or getattr(kernel, "signatures", None):
             continue  # no compiled kernel (a system built by hand), or loaded already

@@ -43,28 +43,50 @@ def _norm(a: np.ndarray) -> np.ndarray | float:
     return float(out) if out.ndim == 0 else out
 
 
-def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """x with a x = b for a small square ``a``: Gaussian elimination with partial pivoting in
-    elementwise operations, so that a Newton step (and the tree it grows) has the same bits on
-    every CPU; LAPACK's least squares (`np.linalg.lstsq`, whose result depends on the BLAS
-    kernel the CPU selects) only where a pivot vanishes (``a`` singular to working precision)."""
-    m = np.hstack([a, b[:, None]]).astype(np.float64, copy=False)
-    n = len(b)
-    scale = float(np.max(np.abs(a))) if a.size else 0.0
-    for k in range(n):
-        p = k + int(np.argmax(np.abs(m[k:, k])))
-        if not abs(m[p, k]) > 1e-13 * scale:
-            return np.linalg.lstsq(a, b, rcond=None)[0]
-        if p != k:
-            m[[k, p]] = m[[p, k]]
-        m[k + 1:] -= (m[k + 1:, k] / m[k, k])[:, None] * m[k]
+@numba.njit(cache=True)
+def _eliminate(m, scale):
+    """x with a x = b for the augmented matrix ``m`` = [a | b] (n, n + 1), which it
+    overwrites: Gaussian elimination with partial pivoting (`np.argmax`'s pivot) and
+    back substitution, every operation in the order `_solve`'s numpy version did them;
+    (x, True), or (unfinished, False) where a pivot is not above ``1e-13 * scale``."""
+    n = m.shape[0]
     x = np.zeros(n)
+    for k in range(n):
+        p, best = k, abs(m[k, k])
+        for i in range(k, n):  # np.argmax's choice: the first NaN, else the first largest
+            v = abs(m[i, k])
+            if np.isnan(v):
+                p = i
+                break
+            if v > best:
+                p, best = i, v
+        if not abs(m[p, k]) > 1e-13 * scale:
+            return x, False
+        if p != k:
+            for j in range(n + 1):
+                m[k, j], m[p, j] = m[p, j], m[k, j]
+        for i in range(k + 1, n):
+            f = m[i, k] / m[k, k]
+            for j in range(n + 1):
+                m[i, j] -= f * m[k, j]
     for k in range(n - 1, -1, -1):
         acc = m[k, n]
         for j in range(k + 1, n):
             acc -= m[k, j] * x[j]
         x[k] = acc / m[k, k]
-    return x
+    return x, True
+
+
+def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """x with a x = b for a small square ``a``: Gaussian elimination with partial pivoting in
+    scalar operations (`_eliminate`, compiled), so that a Newton step (and the tree it grows)
+    has the same bits on every CPU; LAPACK's least squares (`np.linalg.lstsq`, whose result
+    depends on the BLAS kernel the CPU selects) only where a pivot vanishes (``a`` singular
+    to working precision)."""
+    m = np.hstack([a, b[:, None]]).astype(np.float64, copy=False)
+    scale = float(np.max(np.abs(a))) if a.size else 0.0
+    x, ok = _eliminate(m, scale)
+    return x if ok else np.linalg.lstsq(a, b, rcond=None)[0]
 
 
 @numba.njit(cache=True)
@@ -135,17 +157,43 @@ def _endpoints(system: System, x0: np.ndarray, v: np.ndarray, w: float, dt: floa
     z0[:, 2 * n] = 0.0
     states, _, lengths, _ = rollout_batch(system, z0, w, dt, int(k.max()) + 1, np.inf,
                                           np.inf, n, with_costate=True)
-    # step s of the batch is the point after s + 1 RK4 steps; index -1 means z0 itself
-    rows = np.arange(b)
-    before = np.where((k >= 1)[:, None], states[rows, np.maximum(k - 1, 0)], z0[:, : 2 * n])
-    after = states[rows, k]
-    ok = lengths >= k + 1
-    with np.errstate(all="ignore"):  # rows that blew up are masked below
-        z = before + frac[:, None] * (after - before)
-        rate = (after - before) / h
-    z[~ok] = np.nan
-    rate[~ok] = np.nan
+    return _interpolate(states, z0, k, frac, lengths, h)
+
+
+@numba.njit(cache=True)
+def _interpolate(states, z0, k, frac, lengths, h):
+    """`_endpoints`' state and costate (B, 2n) and their rate (B, 2n) of its batch
+    ``states`` (B, steps, 2n): row i between RK4 step k[i] - 1 (z0 itself for k[i] = 0)
+    and k[i], at fraction frac[i]; NaN rows where the row stopped before step k[i]."""
+    b, d = states.shape[0], states.shape[2]
+    z = np.empty((b, d))
+    rate = np.empty((b, d))
+    for i in range(b):
+        # step s of the batch is the point after s + 1 RK4 steps
+        ki = k[i]
+        if not lengths[i] >= ki + 1:
+            z[i] = np.nan
+            rate[i] = np.nan
+            continue
+        f = frac[i]
+        for j in range(d):
+            before = states[i, ki - 1, j] if ki >= 1 else z0[i, j]
+            after = states[i, ki, j]
+            z[i, j] = before + f * (after - before)
+            rate[i, j] = (after - before) / h
     return z, rate
+
+
+def compiled_kernels(system: System) -> list[tuple[Callable, Callable[[], object]]]:
+    """This module's compiled functions, each with a call that loads it (numba's cache) with
+    the argument types a solve passes, through the function the solver calls it by
+    (`planning.rrt.load_kernels`)."""
+    n = system.n_states
+    x = np.ascontiguousarray((system.state_low + system.state_high) / 2, dtype=np.float64)
+    v = np.append(np.zeros(n), 0.01)[None]
+    return [(_eliminate, lambda: _solve(np.eye(n + 1), np.ones(n + 1))),
+            (_interpolate, lambda: _endpoints(system, x, v, 1.0, 0.01)),
+            (_eliminate_sparse, lambda: _solve_sparse(np.eye(n + 1), np.ones(n + 1)))]
 
 
 def _hamiltonian(system: System, x0: np.ndarray, lam: np.ndarray, w: float) -> np.ndarray:
