@@ -1,9 +1,9 @@
 """Improve a solved plan in its own tree: interior shortcuts (a stretch of the path replaced
 by one extremal, the rest re-attached) and goal shortcuts by shooting (choose-parent for the
 goal). `shortcut` runs both, goal shortcuts first; it is the anytime scheme's ``improve``.
-Indirect multiple shooting of the whole path (`multiple_shooting`) is here too but not run
-by `shortcut`: under the anytime allowance it never finished (docs/anytime.md, "Tried and
-not kept").
+Indirect multiple shooting of the whole path (`multiple_shooting`) is here too; the anytime
+scheme runs it before `shortcut` on each new best path, on an allowance of its own
+(`anytime.solve_with_restarts`' ``first``; docs/anytime.md).
 
 Interior shortcuts (`interior_shortcuts`): between nodes a < b of the path, one extremal
 from x_a shot at x_b (`shooting.shoot`, a point target), from the stretch's first edge
@@ -574,10 +574,9 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
     extremals (`interior_shortcuts`); ``stop`` as both take it. The anytime scheme's
     ``improve`` (``plan.anytime``).
 
-    Not `multiple_shooting` as a third step: run last, the allowance cut 341 of its 343
-    tries (7 problems, 3 seeds, 10 s); run first, it took the quadrotor from 1.52x to 1.04x
-    the optimum (median) but spent the allowance the other improvements pay with (the
-    sparse_rrt acrobot 1.47x -> 1.72x, kink 1.46x -> 1.71x; docs/anytime.md).
+    Not `multiple_shooting`: within this allowance it was cut on 341 of 343 tries (run
+    last) or took the allowance the goal and interior shortcuts pay with (run first); the
+    anytime scheme gives it one of its own (``first``; docs/anytime.md).
 
     Goal shortcuts first: where one extremal reaches the goal from early on (the pendulum)
     nothing is left for the interior to do, and under the anytime scheme's allowance the
