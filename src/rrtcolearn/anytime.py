@@ -64,15 +64,17 @@ def _at_most_spent(left: TerminationCondition, termination: TerminationCondition
 
 
 def _improved(improve: Callable[[Plan, Callable[[], bool]], Plan], p: Plan, fraction: float,
-              termination: TerminationCondition, iterations: int, cpu0: float
-              ) -> tuple[Plan, int, float, float]:
-    """``improve(p, stop)`` within ``fraction`` of what ``p``'s solve took, and the iterations,
-    thread CPU and wall time it spent. With an iteration budget the allowance is in
-    iterations, each step of the improvement (a ``stop()`` call) counting as one, so that
-    the result stays a function of the seed; else in CPU seconds."""
+              termination: TerminationCondition, iterations: int, cpu0: float,
+              grown: tuple[float, int] | None = None) -> tuple[Plan, int, float, float]:
+    """``improve(p, stop)`` within ``fraction`` of what ``p``'s solve took (of ``grown``,
+    the CPU and iterations given instead), and the iterations, thread CPU and wall time it
+    spent. With an iteration budget the allowance is in iterations, each step of the
+    improvement (a ``stop()`` call) counting as one, so that the result stays a function of
+    the seed; else in CPU seconds."""
     t0, c0 = time.perf_counter(), time.thread_time()
-    cpu_share = p.planning_cpu_s * fraction
-    its_share = max(1, p.iterations) * fraction
+    grown_cpu, grown_its = grown if grown is not None else (p.planning_cpu_s, p.iterations)
+    cpu_share = grown_cpu * fraction
+    its_share = max(1, grown_its) * fraction
     steps = 0
 
     def stop() -> bool:
@@ -112,8 +114,9 @@ def solve_with_restarts(solve: Callable[..., Plan],
 
     ``first(plan, stop)`` (e.g. `planning.improve.multiple_shooting`) runs before
     ``improve`` on each solved path cheaper than every path before it (so never twice on
-    one path), with an allowance of its own: its solve's CPU (iterations) times
-    (its gains + 1) / (its tries + 1); ``improve``'s allowance and record do not count it.
+    one path), with an allowance of its own: the CPU (iterations) of all solves so far
+    times (its gains + 1) / (its tries + 1); ``improve``'s allowance and record do not
+    count it.
     ``extra["anytime"]["first"]`` has its tries and gains."""
     if termination.time_limit is None and termination.max_iterations is None and \
             termination.cpu_time_limit is None:
@@ -126,6 +129,7 @@ def solve_with_restarts(solve: Callable[..., Plan],
     runs, iterations, cpu, wall = 0, 0, 0.0, 0.0
     # improvements run, and those that made their path cheaper: ``improve``'s, ``first``'s
     record_, first_record = [0, 0], [0, 0]
+    solves_cpu, solves_its = 0.0, 0  # what all solves so far took
     scale, scales = 1.0, []  # the random controls' input box (1: the whole box)
     cheapest_solve = np.inf  # the cheapest path a solve found (before any improvement)
     while (left := _remaining(termination, iterations, cpu0)) is not None:
@@ -143,6 +147,8 @@ def solve_with_restarts(solve: Callable[..., Plan],
             cheapest_solve = min(cheapest_solve, p.path_cost)
         iterations += max(1, p.iterations)
         cpu += p.planning_cpu_s
+        solves_cpu += p.planning_cpu_s
+        solves_its += max(1, p.iterations)
         wall += p.planning_time_s
         best_before = best.path_cost if best is not None and best.solved else np.inf
         if p.solved and (best is None or not best.solved or p.path_cost < best.path_cost):
@@ -162,7 +168,8 @@ def solve_with_restarts(solve: Callable[..., Plan],
                 continue
             before = p.path_cost
             p, its, c, t = _improved(step, p, (record[1] + 1) / (record[0] + 1),
-                                     termination, iterations, cpu0)
+                                     termination, iterations, cpu0,
+                                     (solves_cpu, solves_its) if step is first else None)
             iterations, cpu, wall = iterations + its, cpu + c, wall + t
             record[0] += 1
             record[1] += p.path_cost < before
