@@ -249,15 +249,17 @@ def first_solution(planner, seed: int, limit: float) -> dict:
 def anytime(planner, seed: int, budget: float) -> dict:
     """``budget`` s of process CPU of anytime planning (restarts + goal shortcuts)."""
     from rrtcolearn.anytime import solve_with_restarts
-    from rrtcolearn.planning.improve import shortcut
+    from rrtcolearn.planning.improve import multiple_shooting, shortcut
     from rrtcolearn.planning.termination import TerminationCondition
 
     p = solve_with_restarts(planner.solve, TerminationCondition(None, None, budget), seed,
                             improve=partial(shortcut, planner),
-                            narrowest=planner.narrowest_control_scale())
+                            narrowest=planner.narrowest_control_scale(),
+                            first=partial(multiple_shooting, planner))
     a = p.extra["anytime"]
     return {"solved": bool(p.solved), "cost": float(p.path_cost) if p.solved else None,
-            "first_cost": a["first_solution_cost"], "solves": a["solves"]}
+            "first_cost": a["first_solution_cost"], "solves": a["solves"],
+            "multiple_shooting": a.get("first")}
 
 
 def _write_json(path: Path, data) -> None:

@@ -187,3 +187,61 @@ def test_later_solves_draw_from_the_narrowed_box(pendulum):
     again, _ = run()
     assert again.to_dict()["path"] == p.to_dict()["path"]
     assert again.extra["anytime"]["control_scales"] == scales
+
+
+def _counting(log: list):
+    """An improvement that asks ``stop()`` until it is told to stop and logs (the plan's
+    cost, its solve's iterations, the calls); it never changes the plan."""
+    def step(p, stop):
+        calls = 1
+        while not stop():
+            calls += 1
+        log.append((p.path_cost, p.iterations, calls))
+        return p
+    return step
+
+
+def test_the_first_improvement_has_an_allowance_of_its_own(pendulum):
+    """``first`` runs only on a path cheaper than every earlier one, each try within the
+    iterations of all solves so far times (its gains + 1) / (its tries + 1), and
+    ``improve``'s allowance follows ``improve``'s own record: both checked call by call
+    against the formula."""
+    problem = PlanningProblem.create(pendulum, START, GOAL, 0.3, u_max=2.0)
+    peer = planners.make("random-rrt", time_weight=1.0)
+    solves: list = []
+
+    def solve(termination, seed):
+        p = peer.solve(problem, termination, seed)
+        solves.append((p.solved, p.path_cost, p.iterations))
+        return p
+
+    def run():
+        solves.clear()
+        first_log, improve_log = [], []
+        p = solve_with_restarts(solve, TerminationCondition(None, 20000), seed=1,
+                                improve=_counting(improve_log), first=_counting(first_log))
+        return p, list(solves), first_log, improve_log
+
+    p, solved, first_log, improve_log = run()
+    # the paths cheaper than all earlier ones, in order
+    news, grown, best = [], [], np.inf  # with the iterations of all solves up to them
+    total = 0
+    for ok, cost, its in solved:
+        total += max(1, its)
+        if ok and cost < best:
+            news.append(cost)
+            grown.append(total)
+            best = cost
+    assert len(news) >= 2 and [c for c, _, _ in first_log] == news
+    assert p.extra["anytime"]["first"] == {"tries": len(news), "gains": 0}
+    # a try stops at the first stop() call past its share (but the last, at the budget):
+    # ``first``'s of all solves so far, ``improve``'s of its own solve
+    for k, (_, _, calls) in enumerate(first_log[:-1]):
+        assert calls == int(grown[k] / (k + 1)) + 1
+    assert len(improve_log) == sum(ok for ok, _, _ in solved) > len(news)
+    for j, (_, its, calls) in enumerate(improve_log[:-1]):
+        assert calls == int(max(1, its) / (j + 1)) + 1
+    # with an iteration budget the same seed gives the same calls and the same plan
+    q, solved2, first_log2, improve_log2 = run()
+    assert (solved2, first_log2, improve_log2) == (solved, first_log, improve_log)
+    assert q.to_dict()["path"] == p.to_dict()["path"]

@@ -133,7 +133,7 @@ def test_the_compiled_linear_solve_has_the_bits_of_the_elementwise_one():
 
 def test_endpoints_interpolate_between_rk4_steps_of_an_integrator_written_here():
     """States and costates at durations between RK4 steps (forwards and backwards), their
-    state rates, and NaN rows past an integration's end, against `rk4_numpy` and linear
+    rates, and NaN rows past an integration's end, against `rk4_numpy` and linear
     interpolation by hand."""
     from rrtcolearn.planning.shooting import _endpoints
 
@@ -149,7 +149,7 @@ def test_endpoints_interpolate_between_rk4_steps_of_an_integrator_written_here()
             frac = t / DT - k
             want = traj[k, :4] + frac * (traj[k + 1, :4] - traj[k, :4])
             assert np.allclose(z[row], want, rtol=1e-12, atol=1e-12)
-            assert np.allclose(rate[row], (traj[k + 1, :2] - traj[k, :2]) / DT, rtol=1e-9,
+            assert np.allclose(rate[row], (traj[k + 1, :4] - traj[k, :4]) / DT, rtol=1e-9,
                                atol=1e-9)
     # a costate so large that the integration overflows: that row is NaN, the others not
     v = np.array([[1e200, 1e200, 0.5], [0.7, -0.3, 0.05]])

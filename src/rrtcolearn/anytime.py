@@ -63,10 +63,39 @@ def _at_most_spent(left: TerminationCondition, termination: TerminationCondition
                                 cut(left.cpu_time_limit, time.process_time() - cpu0))
 
 
+def _improved(improve: Callable[[Plan, Callable[[], bool]], Plan], p: Plan, fraction: float,
+              termination: TerminationCondition, iterations: int, cpu0: float,
+              grown: tuple[float, int] | None = None) -> tuple[Plan, int, float, float]:
+    """``improve(p, stop)`` within ``fraction`` of what ``p``'s solve took (of ``grown``,
+    the CPU and iterations given instead), and the iterations, thread CPU and wall time it
+    spent. With an iteration budget the allowance is in iterations, each step of the
+    improvement (a ``stop()`` call) counting as one, so that the result stays a function of
+    the seed; else in CPU seconds."""
+    t0, c0 = time.perf_counter(), time.thread_time()
+    grown_cpu, grown_its = grown if grown is not None else (p.planning_cpu_s, p.iterations)
+    cpu_share = grown_cpu * fraction
+    its_share = max(1, grown_its) * fraction
+    steps = 0
+
+    def stop() -> bool:
+        nonlocal steps
+        steps += 1
+        if termination.max_iterations is not None:
+            return steps > its_share or \
+                _remaining(termination, iterations + steps, cpu0) is None
+        return time.thread_time() - c0 >= cpu_share or \
+            _remaining(termination, iterations, cpu0) is None
+
+    out = improve(p, stop)
+    return out, steps, time.thread_time() - c0, time.perf_counter() - t0
+
+
 def solve_with_restarts(solve: Callable[..., Plan],
                         termination: TerminationCondition, seed: int = 0,
                         improve: Callable[[Plan, Callable[[], bool]], Plan] | None = None,
-                        narrowest: float = 1.0) -> Plan:
+                        narrowest: float = 1.0,
+                        first: Callable[[Plan, Callable[[], bool]], Plan] | None = None
+                        ) -> Plan:
     """Call ``solve`` until ``termination``'s whole budget is spent, each solve after the
     first with a fresh child seed of ``seed``, each solved plan then passed through
     ``improve(plan, stop)`` if given (e.g. `planning.improve.shortcut`; ``stop()`` is true once
@@ -81,7 +110,14 @@ def solve_with_restarts(solve: Callable[..., Plan],
     after one at a scale below 1 that did not; such a solve gets at most the budget spent
     so far (CPU, wall time, iterations: whichever the budget has), so a box too narrow to
     reach the goal costs at most as much as all before it. The first solve is the plain
-    one (scale 1), and so is every solve at scale 1."""
+    one (scale 1), and so is every solve at scale 1.
+
+    ``first(plan, stop)`` (e.g. `planning.improve.multiple_shooting`) runs before
+    ``improve`` on each solved path cheaper than every path before it (so never twice on
+    one path), with an allowance of its own: the CPU (iterations) of all solves so far
+    times (its gains + 1) / (its tries + 1); ``improve``'s allowance and record do not
+    count it.
+    ``extra["anytime"]["first"]`` has its tries and gains."""
     if termination.time_limit is None and termination.max_iterations is None and \
             termination.cpu_time_limit is None:
         raise ValueError("an anytime plan needs a budget: a time, CPU time or iteration limit")
@@ -91,7 +127,9 @@ def solve_with_restarts(solve: Callable[..., Plan],
     best: Plan | None = None
     progress: list[list[float]] = []
     runs, iterations, cpu, wall = 0, 0, 0.0, 0.0
-    tries = gains = 0  # improvements run, and those that made their path cheaper
+    # improvements run, and those that made their path cheaper: ``improve``'s, ``first``'s
+    record_, first_record = [0, 0], [0, 0]
+    solves_cpu, solves_its = 0.0, 0  # what all solves so far took
     scale, scales = 1.0, []  # the random controls' input box (1: the whole box)
     cheapest_solve = np.inf  # the cheapest path a solve found (before any improvement)
     while (left := _remaining(termination, iterations, cpu0)) is not None:
@@ -109,7 +147,10 @@ def solve_with_restarts(solve: Callable[..., Plan],
             cheapest_solve = min(cheapest_solve, p.path_cost)
         iterations += max(1, p.iterations)
         cpu += p.planning_cpu_s
+        solves_cpu += p.planning_cpu_s
+        solves_its += max(1, p.iterations)
         wall += p.planning_time_s
+        best_before = best.path_cost if best is not None and best.solved else np.inf
         if p.solved and (best is None or not best.solved or p.path_cost < best.path_cost):
             best = p
             progress.append([round(cpu, 6), p.path_cost])
@@ -117,33 +158,21 @@ def solve_with_restarts(solve: Callable[..., Plan],
             best = p
         if not p.solved and runs == 1:
             break  # the budget did not even give a first solution
-        if p.solved and improve is not None:
-            # at most what its solve took, times (gains + 1) / (tries + 1) of earlier
-            # improvements (1 at first): where improving pays it gets as much as growing
-            # trees, where it fails ever less. With an iteration budget the allowance is in
-            # iterations, each step of the improvement (a ``stop()`` call) counting as one,
-            # so that the result stays a function of the seed; else in CPU seconds
-            t0, c0 = time.perf_counter(), time.thread_time()
-            fraction = (gains + 1) / (tries + 1)
+        # ``first`` on a path cheaper than every earlier one, then ``improve``, each within
+        # at most what the solve took, times (gains + 1) / (tries + 1) of its own earlier
+        # runs (1 at first): where improving pays it gets as much as growing trees, where
+        # it fails ever less
+        new_best = p.path_cost < best_before
+        for step, record, run in ((first, first_record, new_best), (improve, record_, True)):
+            if not (p.solved and step is not None and run):
+                continue
             before = p.path_cost
-            steps = [0]
-
-            def stop(its: int = iterations, c0: float = c0, steps: list = steps,
-                     cpu_share: float = p.planning_cpu_s * fraction,
-                     its_share: float = max(1, p.iterations) * fraction) -> bool:
-                steps[0] += 1
-                if termination.max_iterations is not None:
-                    return steps[0] > its_share or \
-                        _remaining(termination, its + steps[0], cpu0) is None
-                return time.thread_time() - c0 >= cpu_share or \
-                    _remaining(termination, its, cpu0) is None
-
-            p = improve(p, stop)
-            iterations += steps[0]
-            tries += 1
-            gains += p.path_cost < before
-            cpu += time.thread_time() - c0
-            wall += time.perf_counter() - t0
+            p, its, c, t = _improved(step, p, (record[1] + 1) / (record[0] + 1),
+                                     termination, iterations, cpu0,
+                                     (solves_cpu, solves_its) if step is first else None)
+            iterations, cpu, wall = iterations + its, cpu + c, wall + t
+            record[0] += 1
+            record[1] += p.path_cost < before
             if p.path_cost < best.path_cost:
                 best = p
                 progress.append([round(cpu, 6), p.path_cost])
@@ -153,6 +182,8 @@ def solve_with_restarts(solve: Callable[..., Plan],
     scheme = "restarts" if improve is None else f"restarts+{name}"
     best.extra["anytime"] = {"scheme": scheme, "solves": runs, "progress": progress,
                              **({"control_scales": scales} if narrowest < 1.0 else {}),
+                             **({"first": {"tries": first_record[0], "gains": first_record[1]}}
+                                if first is not None else {}),
                              "iterations": iterations, "planning_cpu_s": round(cpu, 6),
                              "first_solution_cpu_s": progress[0][0] if progress else None,
                              "first_solution_cost": progress[0][1] if progress else None}

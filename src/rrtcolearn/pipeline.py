@@ -691,7 +691,9 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
     """Plan one query with a fitted model (Alg. 1): the query `make_problem` makes of the
     arguments (``config`` defaults to the model's), grown into a tree by `RRTCoLearn`; with
     ``plan.anytime`` the whole limit is spent on restarts whose paths are shortcut, inside
-    and to the goal (`anytime.solve_with_restarts`, `planning.improve.shortcut`)."""
+    and to the goal (`anytime.solve_with_restarts`, `planning.improve.shortcut`), each new
+    best path first by multiple shooting on an allowance of its own
+    (`planning.improve.multiple_shooting`)."""
     cfg = config or model.config
     problem = make_problem(model.system, cfg, start, goal, goal_tolerance, u_max=u_max,
                            obstacles=obstacles, is_valid=is_valid, goal_fn=goal_fn,
@@ -702,11 +704,12 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
         from functools import partial
 
         from rrtcolearn.anytime import solve_with_restarts
-        from rrtcolearn.planning.improve import shortcut
+        from rrtcolearn.planning.improve import multiple_shooting, shortcut
 
         result = solve_with_restarts(planner.solve, termination, seed,
                                      improve=partial(shortcut, planner),
-                                     narrowest=planner.narrowest_control_scale())
+                                     narrowest=planner.narrowest_control_scale(),
+                                     first=partial(multiple_shooting, planner))
     else:
         result = planner.solve(termination, seed)
     result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None

@@ -1,6 +1,9 @@
 """Improve a solved plan in its own tree: interior shortcuts (a stretch of the path replaced
 by one extremal, the rest re-attached) and goal shortcuts by shooting (choose-parent for the
 goal). `shortcut` runs both, goal shortcuts first; it is the anytime scheme's ``improve``.
+Indirect multiple shooting of the whole path (`multiple_shooting`) is here too; the anytime
+scheme runs it before `shortcut` on each new best path, on an allowance of its own
+(`anytime.solve_with_restarts`' ``first``; docs/anytime.md).
 
 Interior shortcuts (`interior_shortcuts`): between nodes a < b of the path, one extremal
 from x_a shot at x_b (`shooting.shoot`, a point target), from the stretch's first edge
@@ -42,6 +45,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from itertools import pairwise
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -51,13 +55,13 @@ from rrtcolearn.planning.connections import goal_lqr, lqr_chain, shoot_edge
 from rrtcolearn.planning.contracts import Edge, add_edge
 from rrtcolearn.planning.learned import goal_query
 from rrtcolearn.planning.propagator import Propagator
-from rrtcolearn.planning.shooting import land, shoot
+from rrtcolearn.planning.shooting import land, multiple_shoot, shoot
 from rrtcolearn.planning.tree import Plan, PlannerData
 
 if TYPE_CHECKING:
     from rrtcolearn.planning.rrt import RRTCoLearn
 
-__all__ = ["goal_shortcuts", "interior_shortcuts", "shortcut"]
+__all__ = ["goal_shortcuts", "interior_shortcuts", "multiple_shooting", "shortcut"]
 
 # an interior shortcut is shot at its stretch's end node to this state residual (its end is
 # then off by the rounding of its duration to the RK4 grid), then put on it to LAND_TOLERANCE
@@ -421,12 +425,158 @@ def _shortcut_stretch(planner: RRTCoLearn, tree: PlannerData, path: list[int], a
     return None
 
 
+def _segments(durations: np.ndarray, longest: float) -> list[int]:
+    """Positions (in the path, 0 first) where `multiple_shooting`'s segments start: the
+    path's nodes, merged greedily from the start into segments that last at most
+    ``longest`` (an edge longer than that is a segment of its own); ``durations`` are the
+    path's edge durations in order."""
+    starts, since = [0], 0.0
+    for k, d in enumerate(durations):
+        if since > 0.0 and since + d > longest + 1e-9:
+            starts.append(k)
+            since = 0.0
+        since += d
+    return starts
+
+
+def _terminal(problem) -> Callable[[np.ndarray], np.ndarray]:
+    """The terminal conditions of `multiple_shooting` for ends z (B, 2n): the goal
+    residual (`PlanningProblem.goal_residual`, the offset to the goal centre that the goal
+    shortcuts shoot at), and for a coordinate the goal leaves free (weight 0) its costate
+    (transversality: lambda_j(T) = 0)."""
+    n = problem.system.n_states
+    weights = problem.goal_weights
+    free = np.zeros(n, dtype=bool) if weights is None or problem.goal_fn is not None else \
+        np.asarray(weights) == 0
+
+    def terminal(z: np.ndarray) -> np.ndarray:
+        r = problem.goal_residual(z[:, :n])
+        if free.any():
+            r[:, free] = z[:, n:][:, free]
+        return r
+    return terminal
+
+
+def multiple_shooting(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = None
+                      ) -> Plan:
+    """``plan`` with its whole path replaced by one extremal from the start into the goal
+    region found by indirect multiple shooting (`shooting.multiple_shoot`) where that is
+    cheaper; the same plan otherwise.
+
+    Segments: the path's nodes merged into stretches of at most the data's longest
+    extremal (``max_duration``: how far the learned steering and shooting reach), so M
+    follows the path's duration. Each segment starts at its first node's state (the
+    interior ones unknowns) with the costate of its first edge where that is an extremal,
+    else U's prediction for (its first node, its last node); the total duration starts at
+    the path's, split as the path splits it, and lasts at most the path's cost over w. The
+    solution is built as a chain of extremal edges from the root, each simulated from where
+    the previous one ended with its own segment's costate (costate continuity holds to the
+    solve's tolerance), each checked like a planner edge (state box, obstacles, input limit,
+    cut at its first state in the goal region), and kept as new leaves below the root if the
+    chain ends in the goal region and is cheaper. ``stop()`` is asked before each Newton
+    iteration. ``extra["multiple_shooting"]`` records the segments, whether the solve
+    converged, the Newton iterations, whether the chain was kept and else why not."""
+    record = {"segments": 0, "converged": False, "iterations": [0, 0], "kept": False,
+              "why": None}
+    sys, s, prob = planner.problem.system, planner.settings, planner.problem
+    if not plan.solved or len(plan.path_nodes) < 3 or sys.params_from_costate is None:
+        record["why"] = "nothing to do"
+        return _recorded(plan, planner.propagator, None, "multiple_shooting", record)
+    n = sys.n_states
+    prop, tree = planner.propagator, plan.tree
+    path = list(plan.path_nodes)
+    durations = tree.durations[path[1:]]
+    best = float(_costs_to_come(tree, path)[-1])
+    starts = _segments(durations, s.max_duration)
+    record["segments"] = len(starts)
+    if len(starts) < 2:  # one segment: single shooting from the root, the goal walk's
+        record["why"] = "one segment"
+        return _recorded(plan, prop, None, "multiple_shooting", record)
+    bounds = [*starts, len(path) - 1]
+    x = tree.states[path]
+    lams = np.empty((len(starts), n))
+    need_u = []
+    for i, a in enumerate(starts):
+        edge = path[a + 1]
+        if not np.isnan(tree.costates[edge]).any():
+            lams[i] = tree.costates[edge]
+        else:
+            need_u.append(i)
+    if need_u:
+        if planner.model is None:
+            record["why"] = "no costate guess"
+            return _recorded(plan, prop, None, "multiple_shooting", record)
+        a, b = np.array([bounds[i] for i in need_u]), np.array([bounds[i + 1] for i in need_u])
+        shift = sys.wrap_shift(x[a])
+        u = planner.model.query(np.hstack([x[a] + shift, x[b] + shift]))[1]
+        lam_u, valid = sys.costate_from_params(x[a], u[:, :-1], s.time_weight)
+        # where U's parameters give no costate: the nearest extremal edge's on the path
+        has = np.flatnonzero(~np.isnan(tree.costates[path[1:]]).any(axis=1))
+        for k, i in enumerate(need_u):
+            if valid[k]:
+                lams[i] = lam_u[k]
+            elif has.size:
+                lams[i] = tree.costates[path[1 + has[np.argmin(np.abs(has - starts[i]))]]]
+            else:
+                lams[i] = 0.0
+    seg_durations = np.array([durations[a:b].sum() for a, b in pairwise(bounds)])
+    longest = best / s.time_weight if s.time_weight > 0 else 4.0 * seg_durations.sum()
+    stopped = [False]
+
+    def halt() -> bool:
+        stopped[0] = stopped[0] or (stop is not None and stop())
+        return stopped[0]
+
+    res = multiple_shoot(sys, x[0], lams, x[starts[1:]], seg_durations, _terminal(prob),
+                         time_weight=s.time_weight, dt=s.dt, max_duration=longest,
+                         tolerance=SHOOT_TOLERANCE, grid_tolerance=LAND_TOLERANCE,
+                         stop=halt)
+    if res is None:
+        record["why"] = "stopped" if stopped[0] else "not converged"
+        return _recorded(plan, prop, None, "multiple_shooting", record)
+    record["converged"] = True
+    record["iterations"] = list(res.iterations)
+    lam, z0 = np.empty(n), np.empty(2 * n + 1)
+    chain, at = [], x[0]
+    for i, (costate, steps) in enumerate(zip(res.costates, res.steps, strict=True)):
+        z0[:n], z0[n : 2 * n], z0[2 * n] = at, costate, 0.0
+        if not prop.within_limit(z0):
+            break
+        params = np.append(sys.params_from_costate(at[None], costate[None])[0], steps * s.dt)
+        lam[:] = costate
+        edge = prop.extremal_edges(at, params[None], lam[None])
+        if edge is None or not (edge.hit or edge.steps == steps):
+            break
+        chain.append(edge)
+        if edge.hit or i == len(res.steps) - 1:
+            break
+        at = edge.traj[-1, :n]
+    cost = sum(e.cost for e in chain)
+    if not chain or not chain[-1].hit:
+        record["why"] = "edge check"
+        return _recorded(plan, prop, None, "multiple_shooting", record)
+    if cost >= best - 1e-9:
+        record["why"] = "not cheaper"
+        return _recorded(plan, prop, None, "multiple_shooting", record)
+    parent, new_path = path[0], [path[0]]
+    for edge in chain:
+        parent = add_edge(tree, parent, edge, s.dt)
+        tree.made_by[parent] = "shooting"
+        new_path.append(parent)
+    record["kept"] = True
+    return _recorded(plan, prop, new_path, "multiple_shooting", record)
+
+
 def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = None
              ) -> Plan:
     """``plan`` improved in its own tree: its tail replaced by an extremal or an LQR chain
     into the goal region (`goal_shortcuts`), then stretches of what is left by single
     extremals (`interior_shortcuts`); ``stop`` as both take it. The anytime scheme's
     ``improve`` (``plan.anytime``).
+
+    Not `multiple_shooting`: within this allowance it was cut on 341 of 343 tries (run
+    last) or took the allowance the goal and interior shortcuts pay with (run first); the
+    anytime scheme gives it one of its own (``first``; docs/anytime.md).
 
     Goal shortcuts first: where one extremal reaches the goal from early on (the pendulum)
     nothing is left for the interior to do, and under the anytime scheme's allowance the

@@ -27,6 +27,12 @@ from rrtcolearn.systems.base import System
 _EPS = 1e-7  # relative finite-difference step of the costate coordinates
 _STEP_SIZES = (1.0, 0.5, 0.25, 0.1)  # backtracking line search, evaluated in one batch
 _LAND_STEP_SIZES = (1.0, 0.5, 0.25, 0.1, 0.03, 0.01)  # `land`'s
+# `multiple_shoot`'s dogleg trust radii, as multiples of the last accepted one (scaled
+# variables), tried in one batch
+_DOGLEG_RADII = np.array([2.0, 1.0, 0.5, 0.25, 0.1, 0.03, 0.01])
+# the first trust radius (scaled units): 10 converged on 5 of 6 first paths (pendulum at
+# |u| <= 1, quadrotor; 3 seeds each), 1 on 4, 100 on 4 (docs/anytime.md)
+_DOGLEG_START = 10.0
 
 
 def _norm(a: np.ndarray) -> np.ndarray | float:
@@ -83,6 +89,47 @@ def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return x if ok else np.linalg.lstsq(a, b, rcond=None)[0]
 
 
+@numba.njit(cache=True)
+def _eliminate_sparse(m: np.ndarray, tiny: float) -> bool:
+    """`_solve_sparse`'s elimination of ``m`` = [a | b] in place, compiled (scalar loops, no
+    BLAS: the same bits on every CPU), skipping the zeros of a sparse ``a``; False where a
+    pivot vanishes."""
+    n = m.shape[0]
+    for k in range(n):
+        p, big = k, abs(m[k, k])
+        for i in range(k + 1, n):
+            if abs(m[i, k]) > big:
+                p, big = i, abs(m[i, k])
+        if not big > tiny:
+            return False
+        if p != k:
+            for j in range(k, n + 1):
+                m[k, j], m[p, j] = m[p, j], m[k, j]
+        for i in range(k + 1, n):
+            if m[i, k] != 0.0:
+                f = m[i, k] / m[k, k]
+                for j in range(k, n + 1):
+                    if m[k, j] != 0.0:
+                        m[i, j] -= f * m[k, j]
+    for k in range(n - 1, -1, -1):
+        acc = m[k, n]
+        for j in range(k + 1, n):
+            acc -= m[k, j] * m[j, n]
+        m[k, n] = acc / m[k, k]
+    return True
+
+
+def _solve_sparse(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """`_solve` for `multiple_shoot`'s sparse Jacobians of some hundred unknowns, compiled:
+    the same elimination with partial pivoting, zeros skipped; LAPACK's least squares where
+    a pivot vanishes."""
+    m = np.ascontiguousarray(np.hstack([a, b[:, None]]), dtype=np.float64)
+    scale = float(np.max(np.abs(a))) if a.size else 0.0
+    if not _eliminate_sparse(m, 1e-13 * scale):
+        return np.linalg.lstsq(a, b, rcond=None)[0]
+    return m[:, -1].copy()
+
+
 @dataclass(frozen=True)
 class ShootingResult:
     """Steering parameters (k,) and duration (a whole number of RK4 steps) whose edge ends
@@ -96,11 +143,11 @@ class ShootingResult:
 
 def _endpoints(system: System, x0: np.ndarray, v: np.ndarray, w: float, dt: float
                ) -> tuple[np.ndarray, np.ndarray]:
-    """State and costate (B, 2n) at duration v[:, -1] from x0 with costates v[:, :-1],
-    interpolated between RK4 steps of signed size ``dt`` (negative: backwards in time), and
-    the state's rate of change with the duration (B, n); NaN rows where the integration
-    fails."""
-    n, b = len(x0), len(v)
+    """State and costate (B, 2n) at duration v[:, -1] from x0 (n,) or each row's own start
+    (B, n) with costates v[:, :-1], interpolated between RK4 steps of signed size ``dt``
+    (negative: backwards in time), and their rate of change with the duration (B, 2n); NaN
+    rows where the integration fails."""
+    n, b = x0.shape[-1], len(v)
     h = abs(dt)
     k = np.floor(v[:, -1] / h).astype(np.int64)
     frac = v[:, -1] / h - k
@@ -115,13 +162,12 @@ def _endpoints(system: System, x0: np.ndarray, v: np.ndarray, w: float, dt: floa
 
 @numba.njit(cache=True)
 def _interpolate(states, z0, k, frac, lengths, h):
-    """`_endpoints`' state and costate (B, 2n) and state rate (B, n) of its batch
+    """`_endpoints`' state and costate (B, 2n) and their rate (B, 2n) of its batch
     ``states`` (B, steps, 2n): row i between RK4 step k[i] - 1 (z0 itself for k[i] = 0)
     and k[i], at fraction frac[i]; NaN rows where the row stopped before step k[i]."""
     b, d = states.shape[0], states.shape[2]
-    n = d // 2
     z = np.empty((b, d))
-    rate = np.empty((b, n))
+    rate = np.empty((b, d))
     for i in range(b):
         # step s of the batch is the point after s + 1 RK4 steps
         ki = k[i]
@@ -134,8 +180,7 @@ def _interpolate(states, z0, k, frac, lengths, h):
             before = states[i, ki - 1, j] if ki >= 1 else z0[i, j]
             after = states[i, ki, j]
             z[i, j] = before + f * (after - before)
-            if j < n:
-                rate[i, j] = (after - before) / h
+            rate[i, j] = (after - before) / h
     return z, rate
 
 
@@ -147,7 +192,8 @@ def compiled_kernels(system: System) -> list[tuple[Callable, Callable[[], object
     x = np.ascontiguousarray((system.state_low + system.state_high) / 2, dtype=np.float64)
     v = np.append(np.zeros(n), 0.01)[None]
     return [(_eliminate, lambda: _solve(np.eye(n + 1), np.ones(n + 1))),
-            (_interpolate, lambda: _endpoints(system, x, v, 1.0, 0.01))]
+            (_interpolate, lambda: _endpoints(system, x, v, 1.0, 0.01)),
+            (_eliminate_sparse, lambda: _solve_sparse(np.eye(n + 1), np.ones(n + 1)))]
 
 
 def _hamiltonian(system: System, x0: np.ndarray, lam: np.ndarray, w: float) -> np.ndarray:
@@ -201,7 +247,7 @@ def newton(system: System, x0: np.ndarray, lam0: np.ndarray, duration0: float,
         rp, _, _ = residual(probe)
         jac = np.empty((n + 1, n + 1))
         jac[:, :n] = ((rp[:n] - rp[n:]) / (2.0 * eps[:, None])).T
-        jac[:n, n] = rate
+        jac[:n, n] = rate[:n]
         jac[n, n] = 0.0
         if not np.isfinite(jac).all():
             return None
@@ -305,3 +351,218 @@ def land(system: System, x0: np.ndarray, lam0: np.ndarray, steps: int, target: n
             return None
         lam, r = cand[descends[0]], rc[descends[0]]
     return None
+
+
+@dataclass(frozen=True)
+class MultipleShootingResult:
+    """One extremal as M segments: each segment's start state (M, n; row 0 the fixed start)
+    and costate there (M, n), its duration in RK4 steps (M,), the residual norm of the
+    matching conditions and the Newton iterations of each phase (free time, on the grid)."""
+
+    states: np.ndarray
+    costates: np.ndarray
+    steps: np.ndarray
+    residual: float
+    iterations: tuple[int, int]
+
+
+def _ms_newton(system: System, x0: np.ndarray, lams: np.ndarray, states: np.ndarray,
+               durations: np.ndarray, terminal: Callable[[np.ndarray], np.ndarray],
+               free_time: bool, w: float, dt: float, max_duration: float, tolerance: float,
+               max_iterations: int, stop: Callable[[], bool] | None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int] | None:
+    """`multiple_shoot`'s Newton solve: (costates (M, n), interior states (M - 1, n),
+    durations (M,), residual norm, iterations) or None. With ``free_time`` the total
+    duration is an unknown (the segments keep their shares of it) and H*(x0, lambda_0) = 0
+    a condition; else the durations are fixed."""
+    m, n = lams.shape
+    h = abs(dt)
+    share = durations / durations.sum()
+    nl, nx = m * n, (m - 1) * n
+    size = nl + nx + int(free_time)
+    v = np.concatenate([lams.ravel(), states.ravel(),
+                        [float(np.clip(durations.sum(), m * h, max_duration))]
+                        if free_time else []])
+    rows_c = 2 * n * (m - 1)  # continuity rows, then n terminal rows, then H*
+    order = np.concatenate([np.arange(n)] + [np.r_[nl + (i - 1) * n + np.arange(n),
+                                                    i * n + np.arange(n)]
+                                             for i in range(1, m)]
+                           + ([np.array([size - 1])] if free_time else [])).astype(np.int64)
+
+    def unpack(vs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        b = len(vs)
+        lam = vs[:, :nl].reshape(b, m, n)
+        xs = np.concatenate([np.broadcast_to(x0, (b, 1, n)),
+                             vs[:, nl : nl + nx].reshape(b, m - 1, n)], axis=1)
+        durs = vs[:, -1:] * share[None] if free_time else np.broadcast_to(durations, (b, m))
+        return lam, xs, durs
+
+    def ends(xs: np.ndarray, lam: np.ndarray, durs: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+        # every segment of every candidate in one batched integration
+        z, rate = _endpoints(system, xs.reshape(-1, n),
+                             np.hstack([lam.reshape(-1, n), durs.reshape(-1, 1)]), w, dt)
+        return z, rate
+
+    def residual(vs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        b = len(vs)
+        lam, xs, durs = unpack(vs)
+        z, rate = ends(xs, lam, durs)
+        z, rate = z.reshape(b, m, 2 * n), rate.reshape(b, m, 2 * n)
+        r = np.empty((b, size))
+        with np.errstate(all="ignore"):
+            gap = np.concatenate([z[:, :-1, :n] - xs[:, 1:], z[:, :-1, n:] - lam[:, 1:]],
+                                 axis=2)
+            r[:, :rows_c] = gap.reshape(b, rows_c)
+            r[:, rows_c : rows_c + n] = terminal(z[:, -1])
+            if free_time:
+                r[:, -1] = _hamiltonian(system, x0, lam[:, 0], w)
+        return r, z, rate
+
+    r, z, rate = (a[0] for a in residual(v[None]))
+    norm = _norm(r)
+    radius = _DOGLEG_START
+    for it in range(max_iterations + 1):
+        if not np.isfinite(norm):
+            return None
+        if norm <= tolerance:
+            lam, xs, durs = unpack(v[None])
+            return lam[0], xs[0, 1:], durs[0], norm, it
+        if it == max_iterations or (stop is not None and stop()):
+            return None
+        lam, xs, durs = unpack(v[None])
+        lam, xs, durs = lam[0], xs[0], durs[0]
+        # the Jacobian by central differences, block by block: segment i's end depends on
+        # its own start state (i >= 1) and costate only (and the total duration, through
+        # the state's and costate's rate); all probes of all segments in one integration
+        el = _EPS * np.maximum(1.0, np.abs(lam))  # (m, n)
+        ex = _EPS * np.maximum(1.0, np.abs(xs))
+        eye = np.eye(n)
+        sign = np.array([1.0, -1.0])[None, :, None, None]
+        # costate probes of every segment (m, +-, n, n), then state probes of segments 1..
+        lam_p = lam[:, None, None, :] + sign * (el[:, None, :, None] * eye)
+        x_p = xs[1:, None, None, :] + sign * (ex[1:, None, :, None] * eye)
+        starts = np.concatenate([np.broadcast_to(xs[:, None, None, :], lam_p.shape).reshape(-1, n),
+                                 x_p.reshape(-1, n)])
+        costs = np.concatenate([lam_p.reshape(-1, n), np.broadcast_to(
+            lam[1:, None, None, :], x_p.shape).reshape(-1, n)])
+        times = np.concatenate([np.repeat(durs, 2 * n), np.repeat(durs[1:], 2 * n)])
+        zp, _ = ends(starts, costs, times)
+        zl = zp[: 2 * n * m].reshape(m, 2, n, 2 * n)
+        zx = zp[2 * n * m :].reshape(m - 1, 2, n, 2 * n)
+        d_lam = (zl[:, 0] - zl[:, 1]) / (2.0 * el[:, :, None])  # (m, n wrt, 2n of z)
+        d_x = (zx[:, 0] - zx[:, 1]) / (2.0 * ex[1:, :, None])
+        jac = np.zeros((size, size))
+        idx = np.arange(n)
+        for i in range(m - 1):
+            rs = slice(2 * n * i, 2 * n * (i + 1))
+            jac[rs, i * n : (i + 1) * n] = d_lam[i].T
+            if i >= 1:
+                jac[rs, nl + (i - 1) * n : nl + i * n] = d_x[i - 1].T
+            jac[2 * n * i + idx, nl + i * n + idx] = -1.0
+            jac[2 * n * i + n + idx, (i + 1) * n + idx] = -1.0
+        if free_time:
+            jac[:rows_c, -1] = (share[:-1, None] * rate[:-1]).ravel()
+        # the last segment: the terminal conditions through its end
+        ts = slice(rows_c, rows_c + n)
+        t = terminal(zl[-1].reshape(2 * n, 2 * n))
+        jac[ts, (m - 1) * n : m * n] = ((t[:n] - t[n:]) / (2.0 * el[-1][:, None])).T
+        if m >= 2:
+            t = terminal(zx[-1].reshape(2 * n, 2 * n))
+            jac[ts, nl + (m - 2) * n : nl + (m - 1) * n] = \
+                ((t[:n] - t[n:]) / (2.0 * ex[-1][:, None])).T
+        if free_time:
+            dz = _EPS * max(1.0, float(durs[-1]))
+            t = terminal(np.stack([z[-1] + dz * rate[-1], z[-1] - dz * rate[-1]]))
+            jac[ts, -1] = share[-1] * (t[0] - t[1]) / (2.0 * dz)
+        if free_time:
+            probe = lam[0] + np.concatenate([el[0][:, None] * eye, -el[0][:, None] * eye])
+            with np.errstate(all="ignore"):
+                hs = _hamiltonian(system, x0, probe, w)
+            jac[-1, :n] = (hs[:n] - hs[n:]) / (2.0 * el[0])
+        if not np.isfinite(jac).all():
+            return None
+        # the unknowns interleaved (lambda_0, x_1, lambda_1, x_2, ...; T last): the rows of
+        # segment i then touch a band of columns, and the sparse elimination stays cheap
+        step = np.empty(size)
+        step[order] = _solve_sparse(jac[:, order], -r)
+        # Powell's dogleg in the unknowns scaled by their size (at least 1): Newton's step
+        # where it lies within the trust radius, else the path towards the Cauchy point
+        # (steepest descent of |r|^2, a descent direction even where saturated inputs make
+        # the Jacobian near singular); several radii in one batch, the best kept, its
+        # radius the next one's start. `newton`'s trust region with a line search instead:
+        # 2 of 12 first paths converged against 4 (pendulum at |u| <= 1, quadrotor,
+        # sparse_rrt acrobot and cart-pole, 3 seeds each; docs/anytime.md)
+        d = np.maximum(1.0, np.abs(v))
+        js = jac * d[None, :]
+        ny = step / d
+        g = np.sum(js * r[:, None], axis=0)
+        jg = np.sum(js * g[None, :], axis=1)
+        with np.errstate(all="ignore"):  # a zero gradient: NaN candidates, rejected below
+            cy = -(np.sum(g * g) / np.sum(jg * jg)) * g
+        nn, nc = _norm(ny), _norm(cy)
+        dd = ny - cy
+        aa, bb = np.sum(dd * dd), 2.0 * np.sum(cy * dd)
+        radii = radius * _DOGLEG_RADII
+        ys = []
+        for rad in radii:
+            if nn <= rad:
+                ys.append(ny)
+            elif nc >= rad:
+                ys.append(cy * (rad / nc))
+            else:  # where the segment from the Cauchy point to Newton's leaves the radius
+                cc = np.sum(cy * cy) - rad * rad
+                ys.append(cy + (-bb + np.sqrt(bb * bb - 4.0 * aa * cc)) / (2.0 * aa) * dd)
+        cand = v[None] + np.array(ys) * d[None]
+        if free_time:
+            cand[:, -1] = np.clip(cand[:, -1], m * h, max_duration)
+        rc, zc, ratec = residual(cand)
+        with np.errstate(all="ignore"):
+            norms = _norm(rc)
+        norms[~np.isfinite(norms)] = np.inf
+        best = int(np.argmin(norms))
+        if not norms[best] < norm:
+            return None
+        v, r, z, rate, norm = cand[best], rc[best], zc[best], ratec[best], float(norms[best])
+        radius = float(radii[best])
+    return None
+
+
+def multiple_shoot(system: System, x0: np.ndarray, costates: np.ndarray, states: np.ndarray,
+                   durations: np.ndarray, terminal: Callable[[np.ndarray], np.ndarray], *,
+                   time_weight: float, dt: float, max_duration: float,
+                   tolerance: float = 1e-6, grid_tolerance: float = 1e-8,
+                   max_iterations: int = 30, stop: Callable[[], bool] | None = None
+                   ) -> MultipleShootingResult | None:
+    """One extremal from ``x0`` (n,) to where ``terminal`` vanishes, by indirect multiple
+    shooting over M segments.
+
+    Unknowns: the costate at each segment's start (``costates`` (M, n), the guess), the
+    states where segments 1..M-1 start (``states`` (M - 1, n)) and the total duration (the
+    segments keep their shares of ``durations`` (M,)). Conditions: state and costate
+    continuity where segments meet, ``terminal(z_end (B, 2n)) -> (B, n)`` = 0 at the last
+    segment's end (state and costate), and H*(x0, lambda_0) = 0 (free final time; H* is
+    constant along an extremal). Newton's method with Powell's dogleg trust region (several
+    radii tried in one batch), the Jacobian by central differences in one batched
+    integration per iteration. Then each segment's duration is rounded to the RK4 grid and
+    the conditions but H* = 0 are solved again with those durations fixed, to
+    ``grid_tolerance`` (as
+    `land`: H* is then off zero by about the rounding). ``stop()`` is asked before each
+    Newton iteration (True: give up). None when either phase fails."""
+    x0 = np.asarray(x0, dtype=np.float64)
+    lams = np.asarray(costates, dtype=np.float64)
+    xs = np.asarray(states, dtype=np.float64).reshape(len(lams) - 1, len(x0))
+    durs = np.asarray(durations, dtype=np.float64)
+    w, h = float(time_weight), abs(dt)
+    free = _ms_newton(system, x0, lams, xs, durs, terminal, True, w, dt, max_duration,
+                      tolerance, max_iterations, stop)
+    if free is None:
+        return None
+    lams, xs, durs, _, it1 = free
+    steps = np.maximum(1, np.rint(durs / h)).astype(np.int64)
+    grid = _ms_newton(system, x0, lams, xs, steps * h, terminal, False, w, dt, max_duration,
+                      grid_tolerance, max_iterations, stop)
+    if grid is None:
+        return None
+    lams, xs, _, res, it2 = grid
+    return MultipleShootingResult(np.vstack([x0[None], xs]), lams, steps, res, (it1, it2))
