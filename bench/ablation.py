@@ -246,15 +246,20 @@ def first_solution(planner, seed: int, limit: float) -> dict:
             "duration_by": p.extra.get("duration_by", {}) if p.solved else {}}
 
 
-def anytime(planner, seed: int, budget: float) -> dict:
-    """``budget`` s of process CPU of anytime planning (restarts + goal shortcuts)."""
+def anytime_plan(planner, seed: int, budget: float):
+    """The plan of ``budget`` s of process CPU of anytime planning (restarts + shortcuts)."""
     from rrtcolearn.anytime import solve_with_restarts
     from rrtcolearn.planning.improve import shortcut
     from rrtcolearn.planning.termination import TerminationCondition
 
-    p = solve_with_restarts(planner.solve, TerminationCondition(None, None, budget), seed,
-                            improve=partial(shortcut, planner),
-                            narrowest=planner.narrowest_control_scale())
+    return solve_with_restarts(planner.solve, TerminationCondition(None, None, budget), seed,
+                               improve=partial(shortcut, planner),
+                               narrowest=planner.narrowest_control_scale())
+
+
+def anytime(planner, seed: int, budget: float) -> dict:
+    """``budget`` s of process CPU of anytime planning (`anytime_plan`): its figures."""
+    p = anytime_plan(planner, seed, budget)
     a = p.extra["anytime"]
     return {"solved": bool(p.solved), "cost": float(p.path_cost) if p.solved else None,
             "first_cost": a["first_solution_cost"], "solves": a["solves"]}
