@@ -84,12 +84,14 @@ class Problem:
 PROBLEMS = {
     "pendulum": Problem("pendulum_auto", 0.1),
     "pendulum_u1": Problem("pendulum_u1", 0.1),
-    "cartpole": Problem("cartpole", optimum=223.448, optimum_note=(
+    "cartpole": Problem("cartpole", optimum=132.386, optimum_note=(
         "best found, local (docs/collocation.md: tolerance 0.3 wrapped, unbounded, the "
-        "system's box; N = 300 from this bench's default anytime path, below the 265.6 "
-        "of the straight-line search)")),
-    "acrobot": Problem("acrobot", optimum=21.10, optimum_note=(
-        "best found, local (docs/collocation.md: tolerance 0.3 wrapped, unbounded)")),
+        "system's box; N = 400 and 600 from this bench's cheapest default anytime path at "
+        "a683e65, 137.06 on seed 6; was 223.448 from an older planner's path)")),
+    "acrobot": Problem("acrobot", optimum=19.564, optimum_note=(
+        "best found, local (docs/collocation.md: tolerance 0.3 wrapped, unbounded; N = 300 "
+        "from this bench's cheapest default anytime path at a683e65, 87.61 on seed 7; was "
+        "21.10 from straight lines)")),
     "quadrotor": Problem("quadrotor"),
     "sparse_rrt_cartpole": Problem("sparse_rrt_cartpole", optimum=48.005, optimum_note=(
         "docs/collocation.md: |F| <= 300, ball 1.5, every straight-line guess and the "
