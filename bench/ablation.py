@@ -84,12 +84,14 @@ class Problem:
 PROBLEMS = {
     "pendulum": Problem("pendulum_auto", 0.1),
     "pendulum_u1": Problem("pendulum_u1", 0.1),
-    "cartpole": Problem("cartpole", optimum=223.448, optimum_note=(
+    "cartpole": Problem("cartpole", optimum=132.386, optimum_note=(
         "best found, local (docs/collocation.md: tolerance 0.3 wrapped, unbounded, the "
-        "system's box; N = 300 from this bench's default anytime path, below the 265.6 "
-        "of the straight-line search)")),
-    "acrobot": Problem("acrobot", optimum=21.10, optimum_note=(
-        "best found, local (docs/collocation.md: tolerance 0.3 wrapped, unbounded)")),
+        "system's box; N = 400 and 600 from this bench's cheapest default anytime path at "
+        "a683e65, 137.06 on seed 6; was 223.448 from an older planner's path)")),
+    "acrobot": Problem("acrobot", optimum=19.564, optimum_note=(
+        "best found, local (docs/collocation.md: tolerance 0.3 wrapped, unbounded; N = 300 "
+        "from this bench's cheapest default anytime path at a683e65, 87.61 on seed 7; was "
+        "21.10 from straight lines)")),
     "quadrotor": Problem("quadrotor"),
     "sparse_rrt_cartpole": Problem("sparse_rrt_cartpole", optimum=48.005, optimum_note=(
         "docs/collocation.md: |F| <= 300, ball 1.5, every straight-line guess and the "
@@ -246,16 +248,21 @@ def first_solution(planner, seed: int, limit: float) -> dict:
             "duration_by": p.extra.get("duration_by", {}) if p.solved else {}}
 
 
-def anytime(planner, seed: int, budget: float) -> dict:
-    """``budget`` s of process CPU of anytime planning (restarts + goal shortcuts)."""
+def anytime_plan(planner, seed: int, budget: float):
+    """The plan of ``budget`` s of process CPU of anytime planning (restarts + shortcuts)."""
     from rrtcolearn.anytime import solve_with_restarts
     from rrtcolearn.planning.improve import multiple_shooting, shortcut
     from rrtcolearn.planning.termination import TerminationCondition
 
-    p = solve_with_restarts(planner.solve, TerminationCondition(None, None, budget), seed,
-                            improve=partial(shortcut, planner),
-                            narrowest=planner.narrowest_control_scale(),
-                            first=partial(multiple_shooting, planner))
+    return solve_with_restarts(planner.solve, TerminationCondition(None, None, budget), seed,
+                               improve=partial(shortcut, planner),
+                               narrowest=planner.narrowest_control_scale(),
+                               first=partial(multiple_shooting, planner))
+
+
+def anytime(planner, seed: int, budget: float) -> dict:
+    """``budget`` s of process CPU of anytime planning (`anytime_plan`): its figures."""
+    p = anytime_plan(planner, seed, budget)
     a = p.extra["anytime"]
     return {"solved": bool(p.solved), "cost": float(p.path_cost) if p.solved else None,
             "first_cost": a["first_solution_cost"], "solves": a["solves"],
