@@ -196,6 +196,18 @@ def compiled_kernels(system: System) -> list[tuple[Callable, Callable[[], object
             (_eliminate_sparse, lambda: _solve_sparse(np.eye(n + 1), np.ones(n + 1)))]
 
 
+def _best_descent(residuals: np.ndarray, norm: float) -> tuple[int, float] | None:
+    """The line search's pick: the candidate (row of ``residuals``) with the least finite
+    residual norm and that norm, or None when none is below ``norm``."""
+    with np.errstate(all="ignore"):
+        norms = _norm(residuals)
+    norms[~np.isfinite(norms)] = np.inf
+    best = int(np.argmin(norms))
+    if not norms[best] < norm:
+        return None
+    return best, float(norms[best])
+
+
 def _hamiltonian(system: System, x0: np.ndarray, lam: np.ndarray, w: float) -> np.ndarray:
     """H*(x0, lambda) (B,) for costates (B, n)."""
     x = np.broadcast_to(x0, lam.shape)
@@ -261,13 +273,11 @@ def newton(system: System, x0: np.ndarray, lam0: np.ndarray, duration0: float,
         cand = v[None] + np.asarray(_STEP_SIZES)[:, None] * step[None]
         cand[:, -1] = np.clip(cand[:, -1], h, max_duration)
         rc, ratec, zc = residual(cand)
-        with np.errstate(all="ignore"):
-            norms = _norm(rc)
-        norms[~np.isfinite(norms)] = np.inf
-        best = int(np.argmin(norms))
-        if not norms[best] < norm:
+        found = _best_descent(rc, norm)
+        if found is None:
             return None
-        v, r, rate, z, norm = cand[best], rc[best], ratec[best], zc[best], float(norms[best])
+        best, norm = found
+        v, r, rate, z = cand[best], rc[best], ratec[best], zc[best]
     return None
 
 
@@ -517,13 +527,11 @@ def _ms_newton(system: System, x0: np.ndarray, lams: np.ndarray, states: np.ndar
         if free_time:
             cand[:, -1] = np.clip(cand[:, -1], m * h, max_duration)
         rc, zc, ratec = residual(cand)
-        with np.errstate(all="ignore"):
-            norms = _norm(rc)
-        norms[~np.isfinite(norms)] = np.inf
-        best = int(np.argmin(norms))
-        if not norms[best] < norm:
+        found = _best_descent(rc, norm)
+        if found is None:
             return None
-        v, r, z, rate, norm = cand[best], rc[best], zc[best], ratec[best], float(norms[best])
+        best, norm = found
+        v, r, z, rate = cand[best], rc[best], zc[best], ratec[best]
         radius = float(radii[best])
     return None
 
