@@ -1,7 +1,33 @@
+# ruff: noqa: E402 (the BLAS kernel is pinned before numpy is first imported)
 from __future__ import annotations
 
 import os
+import platform
 import re
+
+
+def _pin_blas_kernel() -> None:
+    """Pin OpenBLAS's kernel to Haswell's where the CPU can run it (AVX2 and FMA).
+
+    The LQR connection's Riccati solve is LAPACK's, and its last bits hang on the kernel
+    OpenBLAS picks for the CPU: on an AVX-512 machine it picks SkylakeX, and the recorded
+    trees of the cases that connect or try LQR (tests/test_tree_hashes.py) come out
+    different, as they do under Sandybridge. The hashes were recorded under Haswell (Zen
+    gives the same bits). Set before numpy is first imported; an OPENBLAS_CORETYPE already
+    set wins."""
+    if "OPENBLAS_CORETYPE" in os.environ or platform.machine() not in ("x86_64", "AMD64"):
+        return
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+            flags = next((line.split(":", 1)[1].split() for line in f
+                          if line.startswith("flags")), [])
+    except OSError:
+        return
+    if "avx2" in flags and "fma" in flags:
+        os.environ["OPENBLAS_CORETYPE"] = "Haswell"
+
+
+_pin_blas_kernel()
 
 import numpy as np
 import pytest

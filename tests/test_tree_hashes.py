@@ -8,6 +8,11 @@ hash with the reason; a refactor must leave every hash as it is.
 Each case also asserts what it exercises (edges by kind, the connections switched on and the
 one that reached the goal), so that a case that stops exercising its strategy is noticed
 rather than silently hashing a trivial tree.
+
+The LQR connection's Riccati solve is LAPACK's, whose last bits hang on the OpenBLAS kernel
+the CPU picks: tests/conftest.py pins the Haswell kernel where the CPU runs it (on an AVX-512
+machine OpenBLAS picks SkylakeX, and pendulum_u1, quadrotor and the sparse_rrt cart-pole came
+out different there).
 """
 
 from __future__ import annotations
