@@ -410,8 +410,9 @@ def versus(results: dict, base: dict, mode: str = "default") -> str:
         old = base["problems"].get(name)
         f = summarise(entry, mode, results["settings"]["limit"])
         b = "not run" if old is None else summarise(old, mode, base["settings"]["limit"])
-        if isinstance(f, str) or isinstance(b, str):
-            lines.append(f"| {name} | {b} / {f} | | | |")
+        if isinstance(f, str) or isinstance(b, str):  # one side not run (or n/a)
+            lines.append(f"| {name} | {b if isinstance(b, str) else b['success']} -> "
+                         f"{f if isinstance(f, str) else f['success']} | | | |")
             continue
         lines.append(f"| {name} | {b['success']} -> {f['success']} | "
                      f"{b['cpu_s']:.3g} -> {f['cpu_s']:.3g} | {f['cpu_s'] / b['cpu_s']:.2f} | "
