@@ -119,32 +119,39 @@ class RandomControls:
     def start(self, tree: GrowingTree) -> None:
         """Ready for a new solve on ``tree``: the draws from the narrowest box, widening up
         to ``widest`` (`widen`), the batch's constants, no pending expansion."""
-        self.scale = self.narrow = min(self.widest, self.narrowest_scale())
+        self.scale = min(self.widest, self.narrowest_scale())
         self.widened_at = 0
         self.batch = self.batch_constants(tree)
         self.pending = -1
 
     def until_widening(self, progress: Progress) -> int:
-        """Iterations until the next block (mixing experiment)."""
-        if self.narrow >= self.widest:
+        """Iterations until `widen` is due if the tree gets no nearer the goal (a compiled
+        batch ends there, so the box changes at the iteration the Python loop changes it);
+        a large number once the box is as wide as it gets."""
+        if self.scale >= self.widest:
             return 1 << 62
-        return BATCH_ITERATIONS - progress.iterations % BATCH_ITERATIONS
+        return max(0, self.widened_at + WIDEN_AFTER - progress.since_growth_nearer)
 
-    def widen(self, rng, tree, progress) -> None:
-        """Mixing experiment: alternate blocks of narrowest and whole box."""
-        if self.narrow >= self.widest:
+    def widen(self, rng: np.random.Generator, tree: GrowingTree, progress: Progress) -> None:
+        """At an iteration's start: double the draws' box (up to ``widest``) once WIDEN_AFTER
+        iterations in a row since the last widening brought no node nearer the goal. A first
+        path then holds cheap inputs where they get it nearer, and dearer ones only where the
+        cheap ones stopped doing so. A goal-biased expansion left to the next batch is run
+        first (in the box of its own iteration)."""
+        if progress.since_growth_nearer < self.widened_at:  # nearer since: count afresh
+            self.widened_at = 0
+        if self.until_widening(progress) > 0:
             return
-        want = self.narrow if (progress.iterations // BATCH_ITERATIONS) % 2 == 0 else self.widest
-        if want == self.scale:
-            return
-        if self.pending >= 0:
+        if self.pending >= 0:  # its iteration's expansion first: it may get nearer
             self.run_batch(rng, tree, progress, 0)
-            if progress.goal_node >= 0:
-                return
-        self.scale = want
+            if progress.goal_node < 0:
+                self.widen(rng, tree, progress)
+            return
+        self.scale = min(self.widest, 2.0 * self.scale)
+        self.widened_at = progress.since_growth_nearer
         if self.batch is not None:
-            m = len(self.propagator.control_box[0])
-            self.batch.boxes[4, :m], self.batch.boxes[5, :m] = self.draw_box()
+            self.batch.boxes[4, : len(self.propagator.control_box[0])], \
+                self.batch.boxes[5, : len(self.propagator.control_box[0])] = self.draw_box()
 
     def steer(self, rng: np.random.Generator, tree: GrowingTree, target: np.ndarray,
               to_goal: bool) -> tuple[int, Edge | None]:
