@@ -77,11 +77,6 @@ class _ExploreConsts(NamedTuple):
 # 13 ms at the sparse_rrt cart-pole's dearest, 0.2 ms each), while a batch's call costs
 # about 30 us (most batches end sooner, at the next goal-biased iteration)
 BATCH_ITERATIONS = 64
-# Within a solve the draws start in the narrowest box (`RandomControls.narrowest_scale`) and
-# the box doubles, up to the solve's ``control_scale``, each time this many iterations in a
-# row brought no node nearer the goal (`RandomControls.widen`). Measured 30, 100, 300, 1000,
-# 3000, 5000 on the sparse_rrt cart-pole (docs/ablation.md, "Widening within a solve").
-WIDEN_AFTER = 300
 
 
 class RandomControls:
@@ -106,9 +101,6 @@ class RandomControls:
         self.batch: _ExploreConsts | None = None
         self.pending = -1
         self.scale = 1.0
-        self.widest = 1.0  # the scale the draws widen up to (`widen`)
-        self.widened_at = 0  # ``since_growth_nearer`` at the last widening (0: none since)
-        self._narrowest: float | None = None
 
     @property
     def compiled(self) -> bool:
@@ -117,41 +109,9 @@ class RandomControls:
         return self.problem.system.explore_jit is not None and not self.problem.validity
 
     def start(self, tree: GrowingTree) -> None:
-        """Ready for a new solve on ``tree``: the draws from the narrowest box, widening up
-        to ``widest`` (`widen`), the batch's constants, no pending expansion."""
-        self.scale = min(self.widest, self.narrowest_scale())
-        self.widened_at = 0
+        """Ready for a new solve on ``tree``: the batch's constants, no pending expansion."""
         self.batch = self.batch_constants(tree)
         self.pending = -1
-
-    def until_widening(self, progress: Progress) -> int:
-        """Iterations until `widen` is due if the tree gets no nearer the goal (a compiled
-        batch ends there, so the box changes at the iteration the Python loop changes it);
-        a large number once the box is as wide as it gets."""
-        if self.scale >= self.widest:
-            return 1 << 62
-        return max(0, self.widened_at + WIDEN_AFTER - progress.since_growth_nearer)
-
-    def widen(self, rng: np.random.Generator, tree: GrowingTree, progress: Progress) -> None:
-        """At an iteration's start: double the draws' box (up to ``widest``) once WIDEN_AFTER
-        iterations in a row since the last widening brought no node nearer the goal. A first
-        path then holds cheap inputs where they get it nearer, and dearer ones only where the
-        cheap ones stopped doing so. A goal-biased expansion left to the next batch is run
-        first (in the box of its own iteration)."""
-        if progress.since_growth_nearer < self.widened_at:  # nearer since: count afresh
-            self.widened_at = 0
-        if self.until_widening(progress) > 0:
-            return
-        if self.pending >= 0:  # its iteration's expansion first: it may get nearer
-            self.run_batch(rng, tree, progress, 0)
-            if progress.goal_node < 0:
-                self.widen(rng, tree, progress)
-            return
-        self.scale = min(self.widest, 2.0 * self.scale)
-        self.widened_at = progress.since_growth_nearer
-        if self.batch is not None:
-            self.batch.boxes[4, : len(self.propagator.control_box[0])], \
-                self.batch.boxes[5, : len(self.propagator.control_box[0])] = self.draw_box()
 
     def steer(self, rng: np.random.Generator, tree: GrowingTree, target: np.ndarray,
               to_goal: bool) -> tuple[int, Edge | None]:
@@ -365,12 +325,6 @@ class RandomControls:
         return centre + scale * (low - centre), centre + scale * (high - centre)
 
     def narrowest_scale(self) -> float:
-        """`least_scale`, computed once (R, w and the box do not change)."""
-        if self._narrowest is None:
-            self._narrowest = self.least_scale()
-        return self._narrowest
-
-    def least_scale(self) -> float:
         """The least scale worth drawing from (`draw_box`): the one at which the box's
         dearest corner costs as much as the time, u^T R u / 2 = w (R, w: the running cost's).
         Below it an input costs less than the time it is held, and a smaller box only makes

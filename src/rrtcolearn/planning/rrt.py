@@ -125,7 +125,7 @@ class RRTCoLearn:
         prob, sys, s = self.problem, self.problem.system, self.settings
         controls = self.controls
         if controls is not None:
-            controls.widest = float(control_scale)
+            controls.scale = float(control_scale)
         # compiled code this solve may call and no earlier one loaded: before the clock
         load_kernels(sys, explore=controls is not None and s.control_edges is not False
                      and controls.compiled, lqr=s.goal_lqr is not False,
@@ -138,16 +138,10 @@ class RRTCoLearn:
         if progress.best_goal <= prob.goal_tolerance:
             progress.goal_node = 0
         while progress.goal_node < 0 and not termination(progress.iterations):
-            if schedule.exploring:
-                controls.widen(rng, tree, progress)
-                if progress.goal_node >= 0:  # (a pending expansion run first reached it)
-                    break
             if schedule.exploring and controls.batch is not None:
-                # the iterations up to the next goal-biased one (or the next widening),
-                # compiled
-                budget = min(BATCH_ITERATIONS, controls.until_widening(progress))
-                if termination.max_iterations is not None:
-                    budget = min(budget, termination.max_iterations - progress.iterations)
+                # the iterations up to the next goal-biased one, compiled
+                budget = BATCH_ITERATIONS if termination.max_iterations is None else \
+                    min(BATCH_ITERATIONS, termination.max_iterations - progress.iterations)
                 if not controls.run_batch(rng, tree, progress, budget):
                     continue
                 to_goal = True  # the batch ended at a goal-biased iteration: its rest here
