@@ -13,9 +13,9 @@ the initial costates and the solver varied (study variants, not shipped):
   (``max_duration``); 0 makes every path node a segment start;
 - ``--costates zero``: every segment's initial costate 0 instead of its first edge's (or U's);
 - ``--solver fixed``: the conditions but H* = 0 solved first with the path's durations fixed,
-  then the free-time solve from there; ``homotopy``: a Newton homotopy from the path,
-  r(v) = (1 - s) r(v_path) for s from 0 to 1 (steps grown by 1.5 after a success, halved
-  after a failure, down to 1e-3), each intermediate solve to 1e-3 of |r(v_path)|.
+  then the free-time solve from there. (A Newton homotopy from the path, r(v) =
+  (1 - s) r(v_path) for s from 0 to 1, ran at 16413b0 with ``--solver homotopy``: it needs a
+  residual shift in `shooting._ms_newton` that was not kept; docs/anytime.md.)
 
 ``funnel``: a goal funnel of ``--funnel`` extremals (its own generator, seeded by the seed)
 and, from every node of a first solution's path, the funnel connection's tail
@@ -25,7 +25,7 @@ cheapest path so found (cost to come + tail), and the CPU of the build and the w
 
     PYTHONPATH=src python bench/acrobot_anytime_study.py breakdown --seeds 0,1,2
     PYTHONPATH=src python bench/acrobot_anytime_study.py ms --seeds 0-4 --lengths 6.69,0.5,0
-        [--costates zero] [--solver homotopy] [--problem acrobot] [--models DIR]
+        [--costates zero] [--solver fixed] [--problem acrobot] [--models DIR]
     PYTHONPATH=src python bench/acrobot_anytime_study.py funnel --seeds 0-4 --radius 3
 """
 
@@ -101,45 +101,6 @@ def breakdown(planner, seeds: list[int], budget: float, opt: float) -> None:
         print(f"   best: [{_edges(p)}]", flush=True)
 
 
-def _homotopy(info: dict, system, x0, costates, states, durations, terminal, *, time_weight,
-              dt, max_duration, tolerance=1e-6, grid_tolerance=1e-8, max_iterations=30,
-              stop=None):
-    """`shooting.multiple_shoot` with the free-time phase replaced by a Newton homotopy
-    from the guess (module docstring); ``info`` gets the homotopy parameter reached."""
-    from rrtcolearn.planning.shooting import MultipleShootingResult, _ms_newton
-
-    x0 = np.asarray(x0, dtype=float)
-    lams = np.asarray(costates, dtype=float)
-    xs = np.asarray(states, dtype=float).reshape(len(lams) - 1, len(x0))
-    durs = np.asarray(durations, dtype=float)
-    w, h = float(time_weight), abs(dt)
-    r0 = _ms_newton(system, x0, lams, xs, durs, terminal, True, w, dt, max_duration,
-                    tolerance, -1, stop)
-    size = float(np.sqrt(np.sum(r0 * r0)))
-    done, step, its = 0.0, 0.125, 0
-    while done < 1.0 and step > 1e-3:
-        s = min(1.0, done + step)
-        tol = tolerance if s >= 1.0 else max(tolerance, 1e-3 * size)
-        res = _ms_newton(system, x0, lams, xs, durs, terminal, True, w, dt, max_duration, tol,
-                         max_iterations, stop, shift=(1.0 - s) * r0)
-        if res is None:
-            step /= 2.0
-            continue
-        lams, xs, durs, _, it = res
-        its, done, step = its + it, s, min(1.5 * step, 1.0)
-    info["s"], info["T"] = done, float(durs.sum())
-    if done < 1.0:
-        return None
-    steps = np.maximum(1, np.rint(durs / h)).astype(np.int64)
-    grid = _ms_newton(system, x0, lams, xs, steps * h, terminal, False, w, dt, max_duration,
-                      grid_tolerance, max_iterations, stop)
-    info["grid"] = grid is not None
-    if grid is None:
-        return None
-    lams, xs, _, res, it2 = grid
-    return MultipleShootingResult(np.vstack([x0[None], xs]), lams, steps, res, (its, it2))
-
-
 def _fixed_first(info: dict, system, x0, costates, states, durations, terminal, *,
                  time_weight, dt, max_duration, tolerance=1e-6, grid_tolerance=1e-8,
                  max_iterations=30, stop=None):
@@ -168,8 +129,7 @@ def ms(planner, seeds: list[int], lengths: list[float], costates: str, solver: s
     from rrtcolearn.planning.termination import TerminationCondition
 
     info: dict = {}
-    inner = {"plain": shooting.multiple_shoot, "homotopy": partial(_homotopy, info),
-             "fixed": partial(_fixed_first, info)}[solver]
+    inner = {"plain": shooting.multiple_shoot, "fixed": partial(_fixed_first, info)}[solver]
 
     def patched(system, x0, lams, *a, **k):
         return inner(system, x0, lams * 0.0 if costates == "zero" else lams, *a, **k)
@@ -266,7 +226,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--limit", type=float, default=30.0, help="a first solution's CPU s")
     ap.add_argument("--lengths", default="0", help="longest segments (s); 0: every node")
     ap.add_argument("--costates", choices=("path", "zero"), default="path")
-    ap.add_argument("--solver", choices=("plain", "fixed", "homotopy"), default="plain")
+    ap.add_argument("--solver", choices=("plain", "fixed"), default="plain")
     ap.add_argument("--funnel", type=int, default=20_000, help="the funnel's extremals")
     ap.add_argument("--radius", type=float, default=1.0, help="times plan.funnel_radius")
     args = ap.parse_args(argv)

@@ -379,8 +379,7 @@ class MultipleShootingResult:
 def _ms_newton(system: System, x0: np.ndarray, lams: np.ndarray, states: np.ndarray,
                durations: np.ndarray, terminal: Callable[[np.ndarray], np.ndarray],
                free_time: bool, w: float, dt: float, max_duration: float, tolerance: float,
-               max_iterations: int, stop: Callable[[], bool] | None,
-               shift: np.ndarray | None = None
+               max_iterations: int, stop: Callable[[], bool] | None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int] | None:
     """`multiple_shoot`'s Newton solve: (costates (M, n), interior states (M - 1, n),
     durations (M,), residual norm, iterations) or None. With ``free_time`` the total
@@ -428,13 +427,9 @@ def _ms_newton(system: System, x0: np.ndarray, lams: np.ndarray, states: np.ndar
             r[:, rows_c : rows_c + n] = terminal(z[:, -1])
             if free_time:
                 r[:, -1] = _hamiltonian(system, x0, lam[:, 0], w)
-            if shift is not None:  # study hook: a Newton homotopy solves r(v) = shift
-                r -= shift
         return r, z, rate
 
     r, z, rate = (a[0] for a in residual(v[None]))
-    if max_iterations < 0:  # study hook (bench/acrobot_anytime_study.py): the residual
-        return r
     norm = _norm(r)
     radius = _DOGLEG_START
     for it in range(max_iterations + 1):
