@@ -61,7 +61,7 @@ from rrtcolearn.planning.tree import Plan, PlannerData
 if TYPE_CHECKING:
     from rrtcolearn.planning.rrt import RRTCoLearn
 
-__all__ = ["goal_shortcuts", "interior_shortcuts", "multiple_shooting", "retimed_shortcuts",
+__all__ = ["goal_shortcuts", "interior_shortcuts", "landed_shortcuts", "multiple_shooting",
            "shortcut"]
 
 # an interior shortcut is shot at its stretch's end node to this state residual (its end is
@@ -73,15 +73,12 @@ LAND_TOLERANCE = 1e-8
 INTERIOR_MISSES = 24
 # a re-attached path's last edge may run this many times its steps to reach the goal region
 REATTACH_STRETCH = 2
-# `retimed_shortcuts`: a stretch is joined again over its duration times 1, 2, 4, ...
-# (while an extremal that long can still be cheaper), at most this many doublings, each
-# landed by Newton's method on the costate in at most RETIME_ITERATIONS steps (`land`'s 12
-# converged on 1 of 8 of the shipped acrobot's jerk stretches, 60 on 5: docs/anytime.md)
-RETIME_DOUBLINGS = 3
-RETIME_ITERATIONS = 60
-# ... and kept only if the path gets cheaper by more than this fraction (an extremal edge
-# retimed over its own duration lands on itself, a few ulps cheaper, again and again)
-RETIME_GAIN = 1e-6
+# `landed_shortcuts`: Newton's iterations of each landing (`land`'s default 12 landed 1 of
+# 8 stretches of the shipped acrobot into its funnel, 60 landed 5: docs/anytime.md), and the
+# least gain kept, as a fraction of the path's cost (a stretch that is one extremal already
+# lands on itself, a few ulps cheaper, again and again)
+LANDED_ITERATIONS = 60
+LANDED_GAIN = 1e-6
 
 
 def _recorded(plan: Plan, prop, path: list[int] | None, key: str, record: dict) -> Plan:
@@ -435,31 +432,34 @@ def _shortcut_stretch(planner: RRTCoLearn, tree: PlannerData, path: list[int], a
     return None
 
 
-def retimed_shortcuts(planner: RRTCoLearn, plan: Plan,
-                      stop: Callable[[], bool] | None = None) -> Plan:
-    """``plan`` with stretches of its path joined again by one extremal over a longer time
+def landed_shortcuts(planner: RRTCoLearn, plan: Plan,
+                     stop: Callable[[], bool] | None = None) -> Plan:
+    """``plan`` with stretches of its path joined by one extremal over the same duration
     wherever that is cheaper; the same plan when none is.
 
-    A chain of extremals with costate jumps can pass its states far faster than it needs
-    to: the shipped acrobot's paths reach the goal funnel through learned edges that cost
-    10-250 in 0.01-0.3 s (docs/anytime.md). The same two states joined over a longer
-    duration cost less input; the interior shortcuts miss these stretches (they shoot for
-    H* = 0 from the stretch's own or U's guess, where V accepts the query). Here a stretch
-    from node a to node b (0 <= a < b, the dearest input first: its cost less w times its
-    duration) is landed on x_b (`shooting.land`, the duration fixed) from the costate 0 and
-    from its first edge's costate, over its duration times 1, 2, 4, ... (at most
-    RETIME_DOUBLINGS doublings, and no longer than an extremal cheaper than the stretch can
-    last: its cost over w). The rest of the path is simulated again from where the
-    extremal ends (`_reattached`); the chain is kept, as new leaves below node a, if every
-    edge passes the planner's checks, it ends in the goal region and the path gets
-    cheaper; the search then starts again on the new path. It stops after INTERIOR_MISSES
-    stretches in a row that gave nothing, or once ``stop()`` is true (asked before each
-    stretch). ``extra["retimed"]`` records the stretches tried, the landings (tried,
-    converged) and the chains kept."""
+    A chain of extremals with costate jumps can be far dearer than one extremal between
+    its ends over the same time: the shipped acrobot's paths reach the goal funnel through
+    learned edges that cost 10-250 in 0.01-0.3 s (docs/anytime.md). `interior_shortcuts`
+    misses most of these stretches: it asks for H* = 0 (a free duration) from the
+    stretch's own or U's guess, and only where V accepts the query. Here a stretch from
+    node a to node b (0 <= a < b; the dearest input first: its cost less w times its
+    duration) is landed on x_b with its duration fixed (`shooting.land`, Newton's method on
+    the costate) from the costate 0 (no input at the start) and from its first edge's
+    costate. The rest of the path is simulated again from where the extremal ends
+    (`_reattached`); the chain is kept, as new leaves below node a, if every edge passes
+    the planner's checks, it ends in the goal region and the path gets cheaper; the search
+    then starts again on the new path. It stops after INTERIOR_MISSES stretches in a row
+    that gave nothing, or once ``stop()`` is true (asked before each stretch).
+    ``extra["landed"]`` records the stretches tried, the landings (tried, converged) and
+    the chains kept.
+
+    Over longer durations too (1, 2, 4, 8 times the stretch's): on 8 acrobot first
+    solutions the same costs but on 3 seeds (4.27x against 4.53x, 5.57x against 6.59x,
+    4.46x against 5.11x) for 2-5 times the CPU (0.27-1.53 s a path against 0.11-0.71 s)."""
     sys, s = planner.problem.system, planner.settings
     record = {"stretches": 0, "landings": [0, 0], "kept": 0, "added": 0}
     if not plan.solved or len(plan.path_nodes) < 2 or sys.params_from_costate is None:
-        plan.extra["retimed"] = record
+        plan.extra["landed"] = record
         return plan
     n, w = sys.n_states, s.time_weight
     prop, tree = planner.propagator, plan.tree
@@ -484,8 +484,8 @@ def retimed_shortcuts(planner: RRTCoLearn, plan: Plan,
             i, j = int(a[k]), int(b[k])
             tried.add((path[i], path[j]))
             record["stretches"] += 1
-            found = _retimed(planner, tree, path, i, j, come, float(ends[j] - ends[i]), best,
-                             lam, z0, record)
+            found = _landed(planner, tree, path, i, j, come, float(ends[j] - ends[i]), best,
+                            lam, z0, record)
             if found is not None:
                 break
             misses += 1
@@ -503,54 +503,46 @@ def retimed_shortcuts(planner: RRTCoLearn, plan: Plan,
             record["added"] += 1
         record["kept"] += 1
         best = float(_costs_to_come(tree, path)[-1])
-    return _recorded(plan, prop, path if record["added"] else None, "retimed", record)
+    return _recorded(plan, prop, path if record["added"] else None, "landed", record)
 
 
-def _retimed(planner: RRTCoLearn, tree: PlannerData, path: list[int], a: int, b: int,
-             come: np.ndarray, duration: float, best: float, lam: np.ndarray, z0: np.ndarray,
-             record: dict) -> tuple[int, list[tuple[Edge, str | None]]] | None:
-    """`retimed_shortcuts`' try at the stretch of ``path`` from position a to b (lasting
+def _landed(planner: RRTCoLearn, tree: PlannerData, path: list[int], a: int, b: int,
+            come: np.ndarray, duration: float, best: float, lam: np.ndarray, z0: np.ndarray,
+            record: dict) -> tuple[int, list[tuple[Edge, str | None]]] | None:
+    """`landed_shortcuts`' try at the stretch of ``path`` from position a to b (lasting
     ``duration``): (a, the new chain of (edge, kind to record)), or None."""
     prop, s = planner.propagator, planner.settings
     sys = planner.problem.system
     n, w = sys.n_states, s.time_weight
     x0, target = tree.states[path[a]], tree.states[path[b]].copy()
-    longest = (come[b] - come[a]) / w if w > 0 else np.inf
     guesses = [np.zeros(n)]
     first = path[a + 1]
     if not np.isnan(tree.costates[first]).any():
         guesses.append(tree.costates[first].copy())
+    steps = max(1, round(duration / s.dt))
     rest = path[b + 1 :]
-    for k in range(RETIME_DOUBLINGS + 1):
-        steps = max(1, round(duration * 2**k / s.dt))
-        if k > 0 and steps * s.dt >= longest:
-            break
-        for guess in guesses:
-            record["landings"][0] += 1
-            costate = land(sys, x0, guess, steps, target, time_weight=w, dt=s.dt,
-                           tolerance=LAND_TOLERANCE, max_iterations=RETIME_ITERATIONS)
-            if costate is None:
+    for guess in guesses:
+        record["landings"][0] += 1
+        costate = land(sys, x0, guess, steps, target, time_weight=w, dt=s.dt,
+                       tolerance=LAND_TOLERANCE, max_iterations=LANDED_ITERATIONS)
+        if costate is None:
+            continue
+        record["landings"][1] += 1
+        z0[:n], z0[n : 2 * n], z0[2 * n] = x0, costate, 0.0
+        if not prop.within_limit(z0):
+            continue
+        p = np.append(sys.params_from_costate(x0[None], costate[None])[0], steps * s.dt)
+        edge = prop.extremal_edges(x0, p[None], costate[None])
+        if edge is None or not (edge.hit or edge.steps == steps) or come[a] + edge.cost >= best:
+            continue
+        chain: list[tuple[Edge, str | None]] = [(edge, "shooting")]
+        if not edge.hit:
+            after = _reattached(prop, tree, rest, edge.traj[-1, :n], lam, z0)
+            if after is None:
                 continue
-            record["landings"][1] += 1
-            z0[:n], z0[n : 2 * n], z0[2 * n] = x0, costate, 0.0
-            if not prop.within_limit(z0):
-                continue
-            p = np.append(sys.params_from_costate(x0[None], costate[None])[0], steps * s.dt)
-            edge = prop.extremal_edges(x0, p[None], costate[None])
-            if edge is None or not (edge.hit or edge.steps == steps) or \
-                    come[a] + edge.cost >= best:
-                continue
-            chain: list[tuple[Edge, str | None]] = [(edge, "shooting")]
-            if not edge.hit:
-                after = _reattached(prop, tree, rest, edge.traj[-1, :n], lam, z0)
-                if after is None:
-                    continue
-                chain += [(e, tree.made_by.get(node)) for e, node in zip(after, rest,
-                                                                           strict=False)]
-            # cheaper by more than the landing's rounding: a stretch that is one extremal
-            # already lands on itself, to the last digits of its cost
-            if come[a] + sum(e.cost for e, _ in chain) < best * (1.0 - RETIME_GAIN):
-                return a, chain
+            chain += [(e, tree.made_by.get(node)) for e, node in zip(after, rest, strict=False)]
+        if come[a] + sum(e.cost for e, _ in chain) < best * (1.0 - LANDED_GAIN):
+            return a, chain
     return None
 
 
@@ -700,8 +692,8 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
              ) -> Plan:
     """``plan`` improved in its own tree: its tail replaced by an extremal or an LQR chain
     into the goal region (`goal_shortcuts`), then stretches of what is left by single
-    extremals (`interior_shortcuts`), then stretches joined again over a longer time
-    (`retimed_shortcuts`); ``stop`` as all take it. The anytime scheme's ``improve``
+    extremals (`interior_shortcuts`), then stretches by single extremals over the same
+    duration (`landed_shortcuts`); ``stop`` as all three take it. The anytime scheme's ``improve``
     (``plan.anytime``).
 
     Not `multiple_shooting`: within this allowance it was cut on 341 of 343 tries (run
@@ -712,6 +704,6 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
     nothing is left for the interior to do, and under the anytime scheme's allowance the
     interior search run first left the goal walk too little CPU (the pendulum at u_max = 1,
     10 s: 5.785 against 5.668 on seed 0, 121 solves against 160)."""
-    return retimed_shortcuts(planner, interior_shortcuts(planner, goal_shortcuts(planner, plan,
-                                                                                  stop), stop),
-                             stop)
+    return landed_shortcuts(planner, interior_shortcuts(planner, goal_shortcuts(planner, plan,
+                                                                                 stop), stop),
+                            stop)
