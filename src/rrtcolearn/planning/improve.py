@@ -453,9 +453,10 @@ def landed_shortcuts(planner: RRTCoLearn, plan: Plan,
     ``extra["landed"]`` records the stretches tried, the landings (tried, converged) and
     the chains kept.
 
-    Over longer durations too (1, 2, 4, 8 times the stretch's): on 8 acrobot first
-    solutions the same costs but on 3 seeds (4.27x against 4.53x, 5.57x against 6.59x,
-    4.46x against 5.11x) for 2-5 times the CPU (0.27-1.53 s a path against 0.11-0.71 s)."""
+    Over twice the duration too: on 8 acrobot first solutions the same costs but on 3
+    seeds (4.27x against 4.53x, 5.57x against 6.59x, 4.46x against 5.11x the optimum) for
+    2-5 times the CPU (0.27-1.53 s a path against 0.11-0.71 s); up to 8 times: 0.74-3.03 s
+    a path (docs/anytime.md)."""
     sys, s = planner.problem.system, planner.settings
     record = {"stretches": 0, "landings": [0, 0], "kept": 0, "added": 0}
     if not plan.solved or len(plan.path_nodes) < 2 or sys.params_from_costate is None:
