@@ -23,10 +23,15 @@ and, from every node of a first solution's path, the funnel connection's tail
 ``--radius`` times ``funnel_radius``, then the edge checked as the planner checks it); the
 cheapest path so found (cost to come + tail), and the CPU of the build and the walk.
 
+``landed``: `planning.improve.landed_shortcuts` alone on first solutions, and after the goal
+walk and the interior shortcuts (`shortcut` as the anytime scheme runs it, without its
+allowance): cost over the optimum and thread CPU of each.
+
     PYTHONPATH=src python bench/acrobot_anytime_study.py breakdown --seeds 0,1,2
     PYTHONPATH=src python bench/acrobot_anytime_study.py ms --seeds 0-4 --lengths 6.69,0.5,0
         [--costates zero] [--solver fixed] [--problem acrobot] [--models DIR]
     PYTHONPATH=src python bench/acrobot_anytime_study.py funnel --seeds 0-4 --radius 3
+    PYTHONPATH=src python bench/acrobot_anytime_study.py landed --seeds 0-7
 """
 
 from __future__ import annotations
@@ -214,11 +219,36 @@ def funnel_walk(planner, seeds: list[int], size: int, radius: float, limit: floa
               f"| {near} of {len(path) - 1} | {found} | {best / opt:.2f} |", flush=True)
 
 
+def landed(planner, seeds: list[int], limit: float, opt: float) -> None:
+    from rrtcolearn.planning import improve as imp
+    from rrtcolearn.planning.termination import TerminationCondition
+
+    print("| seed | first / opt | landed alone (CPU s) | its record | goal walk + interior "
+          "(CPU s) | + landed (CPU s) |\n|---|---|---|---|---|---|")
+    for seed in seeds:
+        p = planner.solve(TerminationCondition(None, None, limit), seed)
+        if not p.solved:
+            continue
+        first = p.path_cost
+        c0 = time.thread_time()
+        a = imp.landed_shortcuts(planner, p)
+        c1 = time.thread_time()
+        q = planner.solve(TerminationCondition(None, None, limit), seed)  # a fresh tree
+        c2 = time.thread_time()
+        q = imp.interior_shortcuts(planner, imp.goal_shortcuts(planner, q))
+        c3 = time.thread_time()
+        r = imp.landed_shortcuts(planner, q)
+        c4 = time.thread_time()
+        print(f"| {seed} | {first / opt:.2f} | {a.path_cost / opt:.2f} ({c1 - c0:.2f}) | "
+              f"{a.extra['landed']} | {q.path_cost / opt:.2f} ({c3 - c2:.2f}) | "
+              f"{r.path_cost / opt:.2f} ({c4 - c3:.2f}) |", flush=True)
+
+
 def main(argv: list[str] | None = None) -> None:
     from rrtcolearn.planning.termination import TerminationCondition
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("what", choices=("breakdown", "ms", "funnel"))
+    ap.add_argument("what", choices=("breakdown", "ms", "funnel", "landed"))
     ap.add_argument("--problem", default="acrobot", choices=sorted(ab.PROBLEMS))
     ap.add_argument("--models", type=Path, default=Path("/tmp/rrtcolearn_ablation_models"))
     ap.add_argument("--seeds", default="0-2")
@@ -238,6 +268,8 @@ def main(argv: list[str] | None = None) -> None:
     planner.solve(TerminationCondition(None, 50), 10_000)  # kernels loaded, as ablation.run
     if args.what == "breakdown":
         breakdown(planner, _seeds(args.seeds), args.anytime, opt)
+    elif args.what == "landed":
+        landed(planner, _seeds(args.seeds), args.limit, opt)
     elif args.what == "funnel":
         funnel_walk(planner, _seeds(args.seeds), args.funnel, args.radius, args.limit, opt)
     else:
