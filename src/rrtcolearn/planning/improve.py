@@ -1,6 +1,8 @@
 """Improve a solved plan in its own tree: interior shortcuts (a stretch of the path replaced
-by one extremal, the rest re-attached) and goal shortcuts by shooting (choose-parent for the
-goal). `shortcut` runs both, goal shortcuts first; it is the anytime scheme's ``improve``.
+by one extremal, the rest re-attached), landed shortcuts (the same with the stretch's
+duration kept, `landed_shortcuts`) and goal shortcuts by shooting (choose-parent for the
+goal). `shortcut` runs all three, goal shortcuts first; it is the anytime scheme's
+``improve``.
 Indirect multiple shooting of the whole path (`multiple_shooting`) is here too; the anytime
 scheme runs it before `shortcut` on each new best path, on an allowance of its own
 (`anytime.solve_with_restarts`' ``first``; docs/anytime.md).
