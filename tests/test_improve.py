@@ -208,3 +208,45 @@ def test_interior_shortcuts_are_deterministic(paper_model, u_max, seed):
     assert a.extra["interior"]["kept"] >= 1
     assert a.to_dict()["path"] == b.to_dict()["path"]
     assert a.extra["interior"] == b.extra["interior"]
+
+
+@pytest.mark.parametrize("u_max", [None, 2.0])
+def test_landed_shortcuts_resimulate_and_keep_the_tree(paper_model, u_max):
+    """`landed_shortcuts` (stretches joined by one extremal over the same duration): on the
+    first seed whose path it makes cheaper, the path re-simulated edge by edge by a plain
+    RK4 of the pendulum's equations (tests/conftest.py) joins, costs what each edge says,
+    keeps the input limit and ends in the goal ball; only leaves are added; the same plan
+    gives the same path, bit for bit; and it is never dearer on any seed."""
+    from tests.conftest import pendulum_edge
+
+    from rrtcolearn.planning.improve import landed_shortcuts
+
+    planner = _planner(paper_model, u_max)
+    kept = None
+    for seed in range(8):
+        p = _solve(planner, seed)
+        first, m = p.path_cost, p.tree.n_nodes
+        before = (p.tree.states[:m].copy(), p.tree.parents[:m].copy())
+        q = landed_shortcuts(planner, p)
+        assert q.path_cost <= first
+        if q.extra["landed"]["kept"] and kept is None:
+            kept = seed
+            assert q.path_cost < first
+            assert q.tree.n_nodes == m + q.extra["landed"]["added"]
+            assert np.array_equal(q.tree.states[:m], before[0])
+            assert np.array_equal(q.tree.parents[:m], before[1])
+            x, cost = START, 0.0
+            for e in q.edges():
+                assert np.abs(np.asarray(e["from"]) - x).max() < 1e-12
+                states, inputs, c = pendulum_edge(e, q.time_weight, q.dt)
+                assert np.abs(states[-1] - e["to"]).max() < 1e-9
+                assert c == pytest.approx(e["cost"], rel=1e-9, abs=1e-12)
+                if u_max is not None:
+                    assert np.abs(inputs).max() <= u_max + 1e-9
+                x, cost = states[-1], cost + c
+            assert cost == pytest.approx(q.path_cost, rel=1e-9)
+            assert np.linalg.norm(x - GOAL) <= 0.1
+            again = landed_shortcuts(planner, _solve(planner, seed))
+            assert again.to_dict()["path"] == q.to_dict()["path"]
+            assert again.extra["landed"] == q.extra["landed"]
+    assert kept is not None
