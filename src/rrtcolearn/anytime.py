@@ -94,8 +94,8 @@ def solve_with_restarts(solve: Callable[..., Plan],
                         termination: TerminationCondition, seed: int = 0,
                         improve: Callable[[Plan, Callable[[], bool]], Plan] | None = None,
                         narrowest: float = 1.0,
-                        first: Callable[[Plan, Callable[[], bool]], Plan] | None = None
-                        ) -> Plan:
+                        first: Callable[[Plan, Callable[[], bool]], Plan] | None = None,
+                        solves: int | None = None, allowance: float = 1.0) -> Plan:
     """Call ``solve`` until ``termination``'s whole budget is spent, each solve after the
     first with a fresh child seed of ``seed``, each solved plan then passed through
     ``improve(plan, stop)`` if given (e.g. `planning.improve.shortcut`; ``stop()`` is true once
@@ -117,10 +117,17 @@ def solve_with_restarts(solve: Callable[..., Plan],
     one path), with an allowance of its own: the CPU (iterations) of all solves so far
     times (its gains + 1) / (its tries + 1); ``improve``'s allowance and record do not
     count it.
-    ``extra["anytime"]["first"]`` has its tries and gains."""
+    ``extra["anytime"]["first"]`` has its tries and gains.
+
+    ``solves``: stop after that many solves (each with its improvements) even with budget
+    left; ``solves=1`` is one improvement round on the first solution (``plan.polish``:
+    `first` then `improve` once each; docs/anytime.md). ``allowance`` scales both
+    allowances (1: each up to what the solves took)."""
     if termination.time_limit is None and termination.max_iterations is None and \
             termination.cpu_time_limit is None:
         raise ValueError("an anytime plan needs a budget: a time, CPU time or iteration limit")
+    if solves is not None and solves < 1:
+        raise ValueError(f"solves must be at least 1, not {solves}")
     termination.start()
     cpu0 = time.process_time()
     children = np.random.SeedSequence(seed)
@@ -132,7 +139,8 @@ def solve_with_restarts(solve: Callable[..., Plan],
     solves_cpu, solves_its = 0.0, 0  # what all solves so far took
     scale, scales = 1.0, []  # the random controls' input box (1: the whole box)
     cheapest_solve = np.inf  # the cheapest path a solve found (before any improvement)
-    while (left := _remaining(termination, iterations, cpu0)) is not None:
+    while (solves is None or runs < solves) and \
+            (left := _remaining(termination, iterations, cpu0)) is not None:
         child = seed if runs == 0 else int(children.spawn(1)[0].generate_state(1)[0])
         scales.append(scale)
         p = solve(left, child) if scale == 1.0 else \
@@ -167,7 +175,8 @@ def solve_with_restarts(solve: Callable[..., Plan],
             if not (p.solved and step is not None and run):
                 continue
             before = p.path_cost
-            p, its, c, t = _improved(step, p, (record[1] + 1) / (record[0] + 1),
+            p, its, c, t = _improved(step, p,
+                                     allowance * (record[1] + 1) / (record[0] + 1),
                                      termination, iterations, cpu0,
                                      (solves_cpu, solves_its) if step is first else None)
             iterations, cpu, wall = iterations + its, cpu + c, wall + t
