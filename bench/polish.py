@@ -45,14 +45,11 @@ def polished(planner, raw, limit: float, fraction: float, steps: bool):
 
     copied = copy.deepcopy(raw)  # not timed: the tree as the solve left it
     left = max(limit - raw.planning_cpu_s, 1e-3)
-    # an iteration budget makes the allowance one in steps (the solve's iterations x f)
-    termination = TerminationCondition(None, 10**9, None) if steps else \
-        TerminationCondition(None, None, left)
     c0 = time.process_time()
-    p = solve_with_restarts(lambda t, s: copied, termination, 0,
+    p = solve_with_restarts(lambda t, s: copied, TerminationCondition(None, None, left), 0,
                             improve=partial(shortcut, planner),
                             first=partial(multiple_shooting, planner),
-                            solves=1, allowance=fraction)
+                            solves=1, allowance=fraction, in_steps=steps)
     return p, time.process_time() - c0
 
 

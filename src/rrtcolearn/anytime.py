@@ -65,12 +65,13 @@ def _at_most_spent(left: TerminationCondition, termination: TerminationCondition
 
 def _improved(improve: Callable[[Plan, Callable[[], bool]], Plan], p: Plan, fraction: float,
               termination: TerminationCondition, iterations: int, cpu0: float,
-              grown: tuple[float, int] | None = None) -> tuple[Plan, int, float, float]:
+              grown: tuple[float, int] | None = None, in_steps: bool = False
+              ) -> tuple[Plan, int, float, float]:
     """``improve(p, stop)`` within ``fraction`` of what ``p``'s solve took (of ``grown``,
     the CPU and iterations given instead), and the iterations, thread CPU and wall time it
-    spent. With an iteration budget the allowance is in iterations, each step of the
-    improvement (a ``stop()`` call) counting as one, so that the result stays a function of
-    the seed; else in CPU seconds."""
+    spent. With an iteration budget (or ``in_steps``) the allowance is in iterations, each
+    step of the improvement (a ``stop()`` call) counting as one, so that the result stays a
+    function of the seed; else in CPU seconds."""
     t0, c0 = time.perf_counter(), time.thread_time()
     grown_cpu, grown_its = grown if grown is not None else (p.planning_cpu_s, p.iterations)
     cpu_share = grown_cpu * fraction
@@ -80,7 +81,7 @@ def _improved(improve: Callable[[Plan, Callable[[], bool]], Plan], p: Plan, frac
     def stop() -> bool:
         nonlocal steps
         steps += 1
-        if termination.max_iterations is not None:
+        if in_steps or termination.max_iterations is not None:
             return steps > its_share or \
                 _remaining(termination, iterations + steps, cpu0) is None
         return time.thread_time() - c0 >= cpu_share or \
@@ -95,7 +96,8 @@ def solve_with_restarts(solve: Callable[..., Plan],
                         improve: Callable[[Plan, Callable[[], bool]], Plan] | None = None,
                         narrowest: float = 1.0,
                         first: Callable[[Plan, Callable[[], bool]], Plan] | None = None,
-                        solves: int | None = None, allowance: float = 1.0) -> Plan:
+                        solves: int | None = None, allowance: float = 1.0,
+                        in_steps: bool = False) -> Plan:
     """Call ``solve`` until ``termination``'s whole budget is spent, each solve after the
     first with a fresh child seed of ``seed``, each solved plan then passed through
     ``improve(plan, stop)`` if given (e.g. `planning.improve.shortcut`; ``stop()`` is true once
@@ -122,9 +124,12 @@ def solve_with_restarts(solve: Callable[..., Plan],
     ``solves``: stop after that many solves (each with its improvements) even with budget
     left; ``solves=1`` is one improvement round on the first solution (``plan.polish``:
     `first` then `improve` once each; docs/anytime.md). ``allowance`` scales both
-    allowances (1: each up to what the solves took)."""
-    if termination.time_limit is None and termination.max_iterations is None and \
-            termination.cpu_time_limit is None:
+    allowances (1: each up to what the solves took). ``in_steps``: the allowances in
+    improvement steps (``allowance`` x the solves' iterations) under any budget, so that the
+    improvements do not depend on the machine's speed (under a time budget the solves still
+    do where the budget runs out)."""
+    if solves is None and termination.time_limit is None and \
+            termination.max_iterations is None and termination.cpu_time_limit is None:
         raise ValueError("an anytime plan needs a budget: a time, CPU time or iteration limit")
     if solves is not None and solves < 1:
         raise ValueError(f"solves must be at least 1, not {solves}")
@@ -178,7 +183,8 @@ def solve_with_restarts(solve: Callable[..., Plan],
             p, its, c, t = _improved(step, p,
                                      allowance * (record[1] + 1) / (record[0] + 1),
                                      termination, iterations, cpu0,
-                                     (solves_cpu, solves_its) if step is first else None)
+                                     (solves_cpu, solves_its) if step is first else None,
+                                     in_steps)
             iterations, cpu, wall = iterations + its, cpu + c, wall + t
             record[0] += 1
             record[1] += p.path_cost < before
