@@ -356,6 +356,17 @@ def test_plan_anytime_writes_its_progress(tiny_run, tmp_path):
     assert "anytime_solves" in result.output
 
 
+def test_plan_polish_records_both_costs(tiny_run, tmp_path):
+    out = tmp_path / "p.json"
+    result = invoke("plan", "--model", str(tiny_run), "--max-iterations", "1500",
+                    "--set", "plan.polish=true", "--out", str(out))
+    assert result.exit_code == 0, result.output
+    d = json.loads(out.read_text())
+    assert "anytime" not in d and d["polish"]["cost"] == d["path_cost"]
+    assert d["polish"]["cost"] <= d["polish"]["first_cost"]
+    assert "first_solution_cost" in result.output and "polished_cost" in result.output
+
+
 def test_progress_is_lines_on_stderr_without_a_terminal(capsys):
     """Without a terminal (a log, a pipe, a batch job) long work reports plain lines on
     stderr, at most one per interval, the first after one interval: short work prints

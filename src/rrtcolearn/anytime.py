@@ -65,12 +65,13 @@ def _at_most_spent(left: TerminationCondition, termination: TerminationCondition
 
 def _improved(improve: Callable[[Plan, Callable[[], bool]], Plan], p: Plan, fraction: float,
               termination: TerminationCondition, iterations: int, cpu0: float,
-              grown: tuple[float, int] | None = None) -> tuple[Plan, int, float, float]:
+              grown: tuple[float, int] | None = None, in_steps: bool = False
+              ) -> tuple[Plan, int, float, float]:
     """``improve(p, stop)`` within ``fraction`` of what ``p``'s solve took (of ``grown``,
     the CPU and iterations given instead), and the iterations, thread CPU and wall time it
-    spent. With an iteration budget the allowance is in iterations, each step of the
-    improvement (a ``stop()`` call) counting as one, so that the result stays a function of
-    the seed; else in CPU seconds."""
+    spent. With an iteration budget (or ``in_steps``) the allowance is in iterations, each
+    step of the improvement (a ``stop()`` call) counting as one, so that the result stays a
+    function of the seed; else in CPU seconds."""
     t0, c0 = time.perf_counter(), time.thread_time()
     grown_cpu, grown_its = grown if grown is not None else (p.planning_cpu_s, p.iterations)
     cpu_share = grown_cpu * fraction
@@ -80,7 +81,7 @@ def _improved(improve: Callable[[Plan, Callable[[], bool]], Plan], p: Plan, frac
     def stop() -> bool:
         nonlocal steps
         steps += 1
-        if termination.max_iterations is not None:
+        if in_steps or termination.max_iterations is not None:
             return steps > its_share or \
                 _remaining(termination, iterations + steps, cpu0) is None
         return time.thread_time() - c0 >= cpu_share or \
@@ -94,8 +95,9 @@ def solve_with_restarts(solve: Callable[..., Plan],
                         termination: TerminationCondition, seed: int = 0,
                         improve: Callable[[Plan, Callable[[], bool]], Plan] | None = None,
                         narrowest: float = 1.0,
-                        first: Callable[[Plan, Callable[[], bool]], Plan] | None = None
-                        ) -> Plan:
+                        first: Callable[[Plan, Callable[[], bool]], Plan] | None = None,
+                        solves: int | None = None, allowance: float = 1.0,
+                        in_steps: bool = False) -> Plan:
     """Call ``solve`` until ``termination``'s whole budget is spent, each solve after the
     first with a fresh child seed of ``seed``, each solved plan then passed through
     ``improve(plan, stop)`` if given (e.g. `planning.improve.shortcut`; ``stop()`` is true once
@@ -117,10 +119,20 @@ def solve_with_restarts(solve: Callable[..., Plan],
     one path), with an allowance of its own: the CPU (iterations) of all solves so far
     times (its gains + 1) / (its tries + 1); ``improve``'s allowance and record do not
     count it.
-    ``extra["anytime"]["first"]`` has its tries and gains."""
-    if termination.time_limit is None and termination.max_iterations is None and \
-            termination.cpu_time_limit is None:
+    ``extra["anytime"]["first"]`` has its tries and gains.
+
+    ``solves``: stop after that many solves (each with its improvements) even with budget
+    left; ``solves=1`` is one improvement round on the first solution (``plan.polish``:
+    `first` then `improve` once each; docs/anytime.md). ``allowance`` scales both
+    allowances (1: each up to what the solves took). ``in_steps``: the allowances in
+    improvement steps (``allowance`` x the solves' iterations) under any budget, so that the
+    improvements do not depend on the machine's speed (under a time budget the solves still
+    do where the budget runs out)."""
+    if solves is None and termination.time_limit is None and \
+            termination.max_iterations is None and termination.cpu_time_limit is None:
         raise ValueError("an anytime plan needs a budget: a time, CPU time or iteration limit")
+    if solves is not None and solves < 1:
+        raise ValueError(f"solves must be at least 1, not {solves}")
     termination.start()
     cpu0 = time.process_time()
     children = np.random.SeedSequence(seed)
@@ -132,7 +144,8 @@ def solve_with_restarts(solve: Callable[..., Plan],
     solves_cpu, solves_its = 0.0, 0  # what all solves so far took
     scale, scales = 1.0, []  # the random controls' input box (1: the whole box)
     cheapest_solve = np.inf  # the cheapest path a solve found (before any improvement)
-    while (left := _remaining(termination, iterations, cpu0)) is not None:
+    while (solves is None or runs < solves) and \
+            (left := _remaining(termination, iterations, cpu0)) is not None:
         child = seed if runs == 0 else int(children.spawn(1)[0].generate_state(1)[0])
         scales.append(scale)
         p = solve(left, child) if scale == 1.0 else \
@@ -167,9 +180,11 @@ def solve_with_restarts(solve: Callable[..., Plan],
             if not (p.solved and step is not None and run):
                 continue
             before = p.path_cost
-            p, its, c, t = _improved(step, p, (record[1] + 1) / (record[0] + 1),
+            p, its, c, t = _improved(step, p,
+                                     allowance * (record[1] + 1) / (record[0] + 1),
                                      termination, iterations, cpu0,
-                                     (solves_cpu, solves_its) if step is first else None)
+                                     (solves_cpu, solves_its) if step is first else None,
+                                     in_steps)
             iterations, cpu, wall = iterations + its, cpu + c, wall + t
             record[0] += 1
             record[1] += p.path_cost < before

@@ -314,6 +314,12 @@ class PlanConfig(_Section):
         "return the cheapest path, its best cost "
         "against CPU in the plan's extra.anytime.progress (rrtcolearn.anytime, "
         "rrtcolearn.planning.improve)")
+    polish: bool = Field(
+        False, description="after the first solution (without anytime), one improvement "
+        "round before returning: multiple shooting of the whole path, then shortcuts, each "
+        "within a quarter of the solve's iterations in improvement steps (deterministic); "
+        "the raw and polished costs in the plan's extra.polish. Off by default: it costs "
+        "1.5-12.5x the first solve's CPU (docs/anytime.md, 'Polishing the first solution')")
     obstacles: list[ObstacleConfig] = Field(
         default_factory=list, description="state-space regions (type = 'box', 'halfplane') "
         "and workspace shapes the body must not touch (shape = 'box', 'disc', 'polygon', "

@@ -684,6 +684,26 @@ def make_problem(system: System, config: Config, start, goal, goal_tolerance: fl
                                   goal_fn=goal_fn, goal_sampler=goal_sampler)
 
 
+# ``plan.polish``: each of the round's two improvements within this share of the first
+# solve's iterations, in improvement steps (deterministic under a time budget too). On the
+# nine problems of bench/ablation.py (5 seeds, bench/polish.py --steps) 0.25 and 1 gave the
+# same polished cost on all nine (the improvements end before the allowance); 0.25 cost less
+# CPU on sparse_rrt's cart-pole (1.45 s against 2.34 s), where neither gained (docs/anytime.md)
+POLISH_ALLOWANCE = 0.25
+
+
+def _polish_record(result: Plan) -> dict:
+    """``plan.polish``'s record for ``extra["polish"]`` (the one-solve anytime record, moved):
+    the raw first path's cost and CPU, the polished cost, the CPU of both together, the
+    improvement steps spent and whether multiple shooting replaced the path."""
+    a = result.extra.pop("anytime")
+    return {"first_cost": a["first_solution_cost"], "first_cpu_s": a["first_solution_cpu_s"],
+            "cost": float(result.path_cost) if result.solved else None,
+            "planning_cpu_s": a["planning_cpu_s"],
+            "steps": a["iterations"] - max(1, result.iterations),
+            "multiple_shooting": result.extra.get("multiple_shooting", {}).get("kept")}
+
+
 def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, *,
          config: Config | None = None, time_limit: float | None = 10.0,
          max_iterations: int | None = None, u_max=_FROM_CONFIG, obstacles=_FROM_CONFIG,
@@ -693,23 +713,32 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
     ``plan.anytime`` the whole limit is spent on restarts whose paths are shortcut, inside
     and to the goal (`anytime.solve_with_restarts`, `planning.improve.shortcut`), each new
     best path first by multiple shooting on an allowance of its own
-    (`planning.improve.multiple_shooting`)."""
+    (`planning.improve.multiple_shooting`); with ``plan.polish`` (and not anytime) the first
+    solution gets one such round (`POLISH_ALLOWANCE`), its raw and polished costs in
+    ``extra["polish"]``."""
     cfg = config or model.config
     problem = make_problem(model.system, cfg, start, goal, goal_tolerance, u_max=u_max,
                            obstacles=obstacles, is_valid=is_valid, goal_fn=goal_fn,
                            goal_sampler=goal_sampler)
     planner = RRTCoLearn(problem, model.functions, model.planner_settings(config))
     termination = TerminationCondition(time_limit, max_iterations)
-    if cfg.plan.anytime:  # the whole budget: restarts, each path shortcut, the cheapest kept
+    if cfg.plan.anytime or cfg.plan.polish:
+        # anytime: the whole budget, restarts, each path shortcut, the cheapest kept;
+        # polish: the first solve and its one improvement round only
         from functools import partial
 
         from rrtcolearn.anytime import solve_with_restarts
         from rrtcolearn.planning.improve import multiple_shooting, shortcut
 
+        polish = not cfg.plan.anytime
         result = solve_with_restarts(planner.solve, termination, seed,
                                      improve=partial(shortcut, planner),
                                      narrowest=planner.narrowest_control_scale(),
-                                     first=partial(multiple_shooting, planner))
+                                     first=partial(multiple_shooting, planner),
+                                     **({"solves": 1, "allowance": POLISH_ALLOWANCE,
+                                         "in_steps": True} if polish else {}))
+        if polish:
+            result.extra["polish"] = _polish_record(result)
     else:
         result = planner.solve(termination, seed)
     result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None

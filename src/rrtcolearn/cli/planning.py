@@ -98,7 +98,18 @@ def plan_summary(p: Plan) -> dict:
             **({"switched_on_at_iteration": ", ".join(
                 f"{k} {v}" for k, v in p.extra["connections_switched_on"].items())}
                if "connections_switched_on" in p.extra else {}),
-            **(_anytime_summary(p.extra["anytime"]) if "anytime" in p.extra else {})}
+            **(_anytime_summary(p.extra["anytime"]) if "anytime" in p.extra else {}),
+            **(_polish_summary(p.extra["polish"]) if "polish" in p.extra else {})}
+
+
+def _polish_summary(r: dict) -> dict:
+    """A polished plan's raw first cost and CPU beside its polished cost (plan.polish)."""
+    def rounded(v: float | None) -> float | None:
+        return None if v is None else round(v, 4)
+
+    return {"first_solution_cost": rounded(r["first_cost"]),
+            "first_solution_cpu_s": rounded(r["first_cpu_s"]),
+            "polished_cost": rounded(r["cost"])}
 
 
 def _anytime_summary(a: dict) -> dict:
