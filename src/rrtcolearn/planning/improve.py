@@ -345,18 +345,26 @@ def interior_shortcuts(planner: RRTCoLearn, plan: Plan,
             break
         misses = 0
         a, chain, tail = found
-        parent = path[a]
-        path = path[: a + 1]
-        for edge, kind in chain:
-            parent = add_edge(tree, parent, edge, s.dt)
-            if kind is not None:
-                tree.made_by[parent] = kind
-            path.append(parent)
-            record["added"] += 1
-        record["kept"] += 1
+        path = _grafted(tree, path, a, chain, s.dt, record)
         record["goal_tails"] += tail
         best = float(_costs_to_come(tree, path)[-1])
     return _recorded(plan, prop, path if record["added"] else None, "interior", record)
+
+
+def _grafted(tree: PlannerData, path: list[int], a: int, chain: list, dt: float,
+             record: dict) -> list[int]:
+    """``path`` up to position a, then ``chain``'s (edge, kind) added as new leaves below it
+    (a kind of None keeps the edge's default); counts the edges added and the chain kept in
+    ``record``. The interior and landed shortcuts' way of keeping a chain."""
+    parent, path = path[a], path[: a + 1]
+    for edge, kind in chain:
+        parent = add_edge(tree, parent, edge, dt)
+        if kind is not None:
+            tree.made_by[parent] = kind
+        path.append(parent)
+        record["added"] += 1
+    record["kept"] += 1
+    return path
 
 
 def _shortcut_stretch(planner: RRTCoLearn, tree: PlannerData, path: list[int], a: int, b: int,
@@ -496,15 +504,7 @@ def landed_shortcuts(planner: RRTCoLearn, plan: Plan,
             break
         misses = 0
         i, chain = found
-        parent = path[i]
-        path = path[: i + 1]
-        for edge, kind in chain:
-            parent = add_edge(tree, parent, edge, s.dt)
-            if kind is not None:
-                tree.made_by[parent] = kind
-            path.append(parent)
-            record["added"] += 1
-        record["kept"] += 1
+        path = _grafted(tree, path, i, chain, s.dt, record)
         best = float(_costs_to_come(tree, path)[-1])
     return _recorded(plan, prop, path if record["added"] else None, "landed", record)
 
