@@ -59,6 +59,7 @@ def functions_for(model, run_dir: Path, steering: str):
     (`LearnedFunctions.set_steering`), or "mlp": J and U from networks fitted on the same
     cleaned data (V stays the k-NN classifier), kept in the run as ``functions-mlp.npz``."""
     from rrtcolearn import pipeline
+    from rrtcolearn.data.store import load_dataset
     from rrtcolearn.learn.models import LearnedFunctions
 
     if steering != "mlp":
@@ -66,7 +67,7 @@ def functions_for(model, run_dir: Path, steering: str):
     path = run_dir / "functions-mlp.npz"
     if path.exists():
         return LearnedFunctions.load(path)[0]
-    data, _ = pipeline.load_dataset(run_dir / pipeline.CLEANED_FILE, model.system.name)
+    data, _ = load_dataset(run_dir / pipeline.CLEANED_FILE, model.system.name)
     cfg = model.config
     cfg = cfg.model_copy(update={"learn": cfg.learn.model_copy(update={"learner": "mlp"})})
     functions = pipeline.fit_functions(model.system, data, cfg)

@@ -190,11 +190,12 @@ class _MLP:
 def run_case(name: str, models: Path, n_queries: int, with_mlp: bool) -> list[dict]:
     from rrtcolearn import pipeline
     from rrtcolearn.data.colearn import sample_pairs
+    from rrtcolearn.data.store import load_dataset
     from rrtcolearn.planning.learned import LAND_FRACTION
 
     _, model, run_dir = _case_model(name, models)
     system, cfg = model.system, model.config
-    data, _ = pipeline.load_dataset(run_dir / pipeline.CLEANED_FILE, system.name)
+    data, _ = load_dataset(run_dir / pipeline.CLEANED_FILE, system.name)
     held = data.simulation % HOLD_OUT_EVERY == 0
     train, test = data.take(~held), data.take(held)
     fn = pipeline.fit_functions(system, train, cfg)

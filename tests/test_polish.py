@@ -11,6 +11,7 @@ from rrtcolearn.anytime import solve_with_restarts
 from rrtcolearn.cli.planning import plan_summary
 from rrtcolearn.config import PlanConfig
 from rrtcolearn.evaluate import resimulate
+from rrtcolearn.planning.rrt import RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
 
 START, GOAL = [-np.pi, 0.0], [0.0, 0.0]
@@ -67,7 +68,7 @@ def test_the_summary_shows_both_costs(paper_model):
 
 def test_one_solve_needs_no_budget(paper_model):
     """``solves=1`` stops by itself: no budget is required (the plain plan needs none)."""
-    planner = pipeline.RRTCoLearn(
+    planner = RRTCoLearn(
         pipeline.make_problem(paper_model.system, paper_model.config, START, GOAL, 0.1),
         paper_model.functions, paper_model.planner_settings())
     p = solve_with_restarts(planner.solve, TerminationCondition(None, None), 2, solves=1)
