@@ -63,6 +63,24 @@ def _edges(p) -> str:
                     for k in path[1:])
 
 
+def _first_solution(planner, seed: int, limit: float):
+    """The planner's first solution for ``seed`` within ``limit`` CPU seconds."""
+    from rrtcolearn.planning.termination import TerminationCondition
+
+    return planner.solve(TerminationCondition(None, None, limit), seed)
+
+
+def _first_solutions(planner, seeds: list[int], limit: float, unsolved=None):
+    """(seed, first solution) of each seed whose solve within ``limit`` CPU s solved; a seed
+    that did not is announced by ``unsolved(seed)`` when given, else passed over."""
+    for seed in seeds:
+        p = _first_solution(planner, seed, limit)
+        if p.solved:
+            yield seed, p
+        elif unsolved is not None:
+            unsolved(seed)
+
+
 def breakdown(planner, seeds: list[int], budget: float, opt: float) -> None:
     from rrtcolearn.anytime import solve_with_restarts
     from rrtcolearn.planning import improve as imp
@@ -131,7 +149,6 @@ def ms(planner, seeds: list[int], lengths: list[float], costates: str, solver: s
        limit: float, opt: float) -> None:
     from rrtcolearn.planning import improve as imp
     from rrtcolearn.planning import shooting
-    from rrtcolearn.planning.termination import TerminationCondition
 
     info: dict = {}
     inner = {"plain": shooting.multiple_shoot, "fixed": partial(_fixed_first, info)}[solver]
@@ -144,11 +161,9 @@ def ms(planner, seeds: list[int], lengths: list[float], costates: str, solver: s
           "| after / opt | CPU (s) | study |\n|---|---|---|---|---|---|---|---|---|---|")
     imp.multiple_shoot = patched
     try:
-        for seed in seeds:
-            p = planner.solve(TerminationCondition(None, None, limit), seed)
-            if not p.solved:
-                print(f"| {seed} | unsolved |" + " |" * 8)
-                continue
+        for seed, p in _first_solutions(
+                planner, seeds, limit,
+                unsolved=lambda seed: print(f"| {seed} | unsolved |" + " |" * 8)):
             for length in lengths:
                 planner.settings = replace(s0, max_duration=length if length > 0 else 1e-9)
                 info.clear()
@@ -177,7 +192,6 @@ def funnel_walk(planner, seeds: list[int], size: int, radius: float, limit: floa
         FunnelConnection,
         shoot_edge,
     )
-    from rrtcolearn.planning.termination import TerminationCondition
 
     prop, s = planner.propagator, planner.settings
     prob, system = planner.problem, planner.problem.system
@@ -186,10 +200,7 @@ def funnel_walk(planner, seeds: list[int], size: int, radius: float, limit: floa
     longest = FUNNEL_STRETCH * s.funnel_duration
     print("| seed | first / opt | build (s) | walk (s) | nodes with a funnel state near | "
           "tails (from path position: costs) | best / opt |\n|---|---|---|---|---|---|---|")
-    for seed in seeds:
-        p = planner.solve(TerminationCondition(None, None, limit), seed)
-        if not p.solved:
-            continue
+    for seed, p in _first_solutions(planner, seeds, limit):
         c0 = time.process_time()
         conn = FunnelConnection.build(prop, np.random.default_rng(seed),
                                       np.asarray(s.metric_scale, dtype=float), size)
@@ -221,19 +232,15 @@ def funnel_walk(planner, seeds: list[int], size: int, radius: float, limit: floa
 
 def landed(planner, seeds: list[int], limit: float, opt: float) -> None:
     from rrtcolearn.planning import improve as imp
-    from rrtcolearn.planning.termination import TerminationCondition
 
     print("| seed | first / opt | landed alone (CPU s) | its record | goal walk + interior "
           "(CPU s) | + landed (CPU s) |\n|---|---|---|---|---|---|")
-    for seed in seeds:
-        p = planner.solve(TerminationCondition(None, None, limit), seed)
-        if not p.solved:
-            continue
+    for seed, p in _first_solutions(planner, seeds, limit):
         first = p.path_cost
         c0 = time.thread_time()
         a = imp.landed_shortcuts(planner, p)
         c1 = time.thread_time()
-        q = planner.solve(TerminationCondition(None, None, limit), seed)  # a fresh tree
+        q = _first_solution(planner, seed, limit)  # a fresh tree
         c2 = time.thread_time()
         q = imp.interior_shortcuts(planner, imp.goal_shortcuts(planner, q))
         c3 = time.thread_time()

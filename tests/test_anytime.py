@@ -4,28 +4,29 @@ fresh seeds, the cheapest path kept, its progress recorded."""
 from __future__ import annotations
 
 import time
+from functools import partial
 from itertools import pairwise
 
 import numpy as np
 import pytest
+from tests.swingup import GOAL, START, plan_swingup
 
-from rrtcolearn import pipeline, planners
+from rrtcolearn import planners
 from rrtcolearn.anytime import solve_with_restarts
 from rrtcolearn.config import PlanConfig
 from rrtcolearn.evaluate import resimulate
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.termination import TerminationCondition
 
-START, GOAL = [-np.pi, 0.0], [0.0, 0.0]
 LIMIT = 1.0  # a time budget (the tests of it assert durations, with a wide margin above)
 MARGIN = 60.0
 
 
-def _anytime(model, seed, iterations=2000):
-    cfg = model.config.model_copy(update={"plan": model.config.plan.model_copy(
-        update={"anytime": True})})
-    return pipeline.plan(model, START, GOAL, 0.1, seed, config=cfg, time_limit=None,
-                         max_iterations=iterations)
+def _random_rrt(pendulum):
+    """The random-control RRT peer's ``solve(termination, seed)`` on the swing-up within
+    0.3 of the goal, |u| <= 2: a planner for the restart baseline without a model."""
+    problem = PlanningProblem.create(pendulum, START, GOAL, 0.3, u_max=2.0)
+    return partial(planners.make("random-rrt", time_weight=1.0).solve, problem)
 
 
 def test_off_by_default():
@@ -33,9 +34,8 @@ def test_off_by_default():
 
 
 def test_keeps_the_first_solution_and_never_gets_worse(paper_model):
-    first = pipeline.plan(paper_model, START, GOAL, 0.1, 3, time_limit=None,
-                          max_iterations=2000)
-    p = _anytime(paper_model, 3)
+    first = plan_swingup(paper_model, 3, max_iterations=2000)
+    p = plan_swingup(paper_model, 3, anytime=True, max_iterations=2000)
     a = p.extra["anytime"]
     assert first.solved and p.solved and a["solves"] > 1
     costs = [c for _, c in a["progress"]]
@@ -51,7 +51,7 @@ def test_keeps_the_first_solution_and_never_gets_worse(paper_model):
 
 
 def test_an_iteration_budget_gives_the_same_plan_for_the_same_seed(paper_model):
-    a, b = (_anytime(paper_model, 5, iterations=1500) for _ in range(2))
+    a, b = (plan_swingup(paper_model, 5, anytime=True, max_iterations=1500) for _ in range(2))
     assert a.to_dict()["path"] == b.to_dict()["path"]
     assert a.extra["anytime"]["solves"] == b.extra["anytime"]["solves"]
     assert [c for _, c in a.extra["anytime"]["progress"]] == \
@@ -61,11 +61,7 @@ def test_an_iteration_budget_gives_the_same_plan_for_the_same_seed(paper_model):
 def test_any_planner_and_a_budget_is_required(pendulum):
     """The baseline wraps any planner's solve (here the random-control RRT's); without a
     limit it would never stop, so it refuses."""
-    problem = PlanningProblem.create(pendulum, START, GOAL, 0.3, u_max=2.0)
-    peer = planners.make("random-rrt", time_weight=1.0)
-    def solve(termination, seed):
-        return peer.solve(problem, termination, seed)
-
+    solve = _random_rrt(pendulum)
     p = solve_with_restarts(solve, TerminationCondition(None, 6000), seed=1)
     costs = [c for _, c in p.extra["anytime"]["progress"]]
     assert p.solved and costs and all(b < c for c, b in pairwise(costs))
@@ -74,10 +70,7 @@ def test_any_planner_and_a_budget_is_required(pendulum):
 
 
 def test_the_anytime_record_counts_every_iteration(paper_model):
-    cfg = paper_model.config.model_copy(update={"plan": paper_model.config.plan.model_copy(
-        update={"anytime": True})})
-    p = pipeline.plan(paper_model, [-np.pi, 0.0], [0.0, 0.0], 0.1, 0, config=cfg,
-                      time_limit=None, max_iterations=1500)
+    p = plan_swingup(paper_model, 0, anytime=True, max_iterations=1500)
     record = p.extra["anytime"]
     assert record["solves"] > 1 and p.iterations < record["iterations"] <= 1500
 
@@ -85,13 +78,9 @@ def test_the_anytime_record_counts_every_iteration(paper_model):
 def test_the_anytime_scheme_spends_a_time_budget(paper_model):
     """With a time limit (no iteration limit) the restarts and shortcuts run until the limit;
     the first solution is the plain solve's (same seed), later ones only improve it."""
-    cfg = paper_model.config.model_copy(update={"plan": paper_model.config.plan.model_copy(
-        update={"anytime": True})})
-    first = pipeline.plan(paper_model, START, GOAL, 0.1, 3, time_limit=None,
-                          max_iterations=3000)
+    first = plan_swingup(paper_model, 3, max_iterations=3000)
     wall = time.perf_counter()
-    p = pipeline.plan(paper_model, START, GOAL, 0.1, 3, config=cfg, time_limit=LIMIT,
-                      max_iterations=None)
+    p = plan_swingup(paper_model, 3, anytime=True, time_limit=LIMIT)
     wall = time.perf_counter() - wall
     a = p.extra["anytime"]
     assert LIMIT <= wall < LIMIT + MARGIN
@@ -106,12 +95,7 @@ def test_the_anytime_scheme_spends_a_time_budget(paper_model):
 
 
 def test_the_restart_baseline_spends_a_cpu_budget(pendulum):
-    problem = PlanningProblem.create(pendulum, START, GOAL, 0.3, u_max=2.0)
-    peer = planners.make("random-rrt", time_weight=1.0)
-
-    def solve(termination, seed):
-        return peer.solve(problem, termination, seed)
-
+    solve = _random_rrt(pendulum)
     cpu = time.process_time()
     p = solve_with_restarts(solve, TerminationCondition(time_limit=None, cpu_time_limit=LIMIT),
                             seed=1)
@@ -206,12 +190,11 @@ def test_the_first_improvement_has_an_allowance_of_its_own(pendulum):
     iterations of all solves so far times (its gains + 1) / (its tries + 1), and
     ``improve``'s allowance follows ``improve``'s own record: both checked call by call
     against the formula."""
-    problem = PlanningProblem.create(pendulum, START, GOAL, 0.3, u_max=2.0)
-    peer = planners.make("random-rrt", time_weight=1.0)
+    peer_solve = _random_rrt(pendulum)
     solves: list = []
 
     def solve(termination, seed):
-        p = peer.solve(problem, termination, seed)
+        p = peer_solve(termination, seed)
         solves.append((p.solved, p.path_cost, p.iterations))
         return p
 

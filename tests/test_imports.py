@@ -71,3 +71,19 @@ def test_the_graph_sees_function_level_imports():
 
 def test_no_import_cycle():
     assert find_cycle(import_graph()) is None
+
+
+# the pipeline's modules in the order of docs/architecture.md's table
+PIPELINE = ["configure", "layout", "model", "offline", "plans", "inspection"]
+
+
+def test_the_pipeline_modules_import_down_their_table():
+    """Each module of `rrtcolearn.pipeline` imports only those before it in its table (none
+    the package itself, which re-exports them all), and every one is in the table."""
+    graph = import_graph()
+    package = "rrtcolearn.pipeline"
+    assert {m.rpartition(".")[2] for m in graph if m.startswith(package + ".")} == set(PIPELINE)
+    for k, name in enumerate(PIPELINE):
+        used = {m.rpartition(".")[2] for m in graph[f"{package}.{name}"]
+                if m == package or m.startswith(package + ".")}
+        assert used <= set(PIPELINE[:k]), (name, used)

@@ -8,42 +8,24 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tests.swingup import (
+    assert_grown_by_leaves,
+    assert_path_resimulates,
+    first_solution,
+    swingup_planner,
+    tree_edges,
+    tree_snapshot,
+)
 
-from rrtcolearn import pipeline
 from rrtcolearn.evaluate import edge_trajectory, resimulate
 from rrtcolearn.planning.improve import shortcut
-from rrtcolearn.planning.rrt import RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
-
-START, GOAL = np.array([-np.pi, 0.0]), np.array([0.0, 0.0])
-
-
-def _planner(model, u_max=None):
-    problem = pipeline.make_problem(model.system, model.config, START, GOAL, 0.1, u_max=u_max)
-    return RRTCoLearn(problem, model.functions, model.planner_settings())
-
-
-def _solve(planner, seed):
-    return planner.solve(TerminationCondition(None, 3000), seed)
-
-
-def _tree_edges(plan) -> list[dict]:
-    """Every edge of the plan's tree (not only its path) in the plan-file form."""
-    t = plan.tree
-    out = []
-    for k in range(1, t.n_nodes):
-        extremal = not np.isnan(t.costates[k]).any()
-        out.append({"from": t.states[t.parents[k]], "to": t.states[k],
-                    "costate": t.costates[k] if extremal else None,
-                    "control": None if extremal else t.controls[k],
-                    "duration": t.durations[k], "cost": t.costs[k]})
-    return out
 
 
 @pytest.mark.parametrize("u_max", [None, 2.0])
 def test_the_tree_stays_a_tree_of_exact_edges(paper_model, u_max):
-    planner = _planner(paper_model, u_max)
-    p = _solve(planner, 3)
+    planner = swingup_planner(paper_model, u_max)
+    p = first_solution(planner, 3)
     first_cost, first_nodes = p.path_cost, p.tree.n_nodes
     q = shortcut(planner, p)
     t = q.tree
@@ -56,7 +38,7 @@ def test_the_tree_stays_a_tree_of_exact_edges(paper_model, u_max):
     assert q.path_nodes == t.path_to(q.path_nodes[-1])
     # every edge of the tree re-simulates from its parent to its node at its cost
     w, dt = q.time_weight, q.dt
-    for e in _tree_edges(q):
+    for e in tree_edges(q):
         r = edge_trajectory(paper_model.system, e, w, dt)
         assert np.abs(r.states[-1] - e["to"]).max() < 1e-9
         assert r.cost == pytest.approx(e["cost"], rel=1e-9, abs=1e-12)
@@ -69,23 +51,23 @@ def test_the_tree_stays_a_tree_of_exact_edges(paper_model, u_max):
 
 
 def test_never_dearer_and_deterministic(paper_model):
-    planner = _planner(paper_model)
+    planner = swingup_planner(paper_model)
     for seed in (1, 4):
-        a = shortcut(planner, _solve(planner, seed))
-        b = shortcut(planner, _solve(planner, seed))
+        a = shortcut(planner, first_solution(planner, seed))
+        b = shortcut(planner, first_solution(planner, seed))
         assert a.to_dict()["path"] == b.to_dict()["path"]
-        assert a.path_cost <= _solve(planner, seed).path_cost
+        assert a.path_cost <= first_solution(planner, seed).path_cost
 
 
 def test_an_unsolved_plan_is_returned_as_it_is(paper_model):
-    planner = _planner(paper_model)
+    planner = swingup_planner(paper_model)
     p = planner.solve(TerminationCondition(None, 3), 0)
     assert not p.solved and shortcut(planner, p) is p
 
 
 def test_stop_is_obeyed(paper_model):
-    planner = _planner(paper_model)
-    p = _solve(planner, 3)
+    planner = swingup_planner(paper_model)
+    p = first_solution(planner, 3)
     cost, nodes = p.path_cost, p.tree.n_nodes
     q = shortcut(planner, p, stop=lambda: True)
     assert q.path_cost == cost and q.tree.n_nodes == nodes
@@ -97,12 +79,11 @@ def test_shortcuts_keep_clear_of_obstacles(paper_model):
     from rrtcolearn.evaluate import replay
 
     block = {"type": "box", "low": [-2.0, 0.3], "high": [-1.2, 2.5]}
-    problem = pipeline.make_problem(paper_model.system, paper_model.config, START, GOAL, 0.1,
-                                    obstacles=[block])
-    planner = RRTCoLearn(problem, paper_model.functions, paper_model.planner_settings())
+    planner = swingup_planner(paper_model, obstacles=[block])
+    problem = planner.problem
     cheaper = 0
     for seed in range(3):
-        p = _solve(planner, seed)
+        p = first_solution(planner, seed)
         first = p.path_cost
         q = shortcut(planner, p)
         r = replay(problem, q)
@@ -116,44 +97,24 @@ def test_shortcuts_keep_clear_of_obstacles(paper_model):
 INTERIOR_CASES = [(None, 4), (2.0, 3)]
 
 
-def _costs_to_come(tree) -> np.ndarray:
-    """Every node's cost to come, summed edge by edge from the root (parents come first)."""
-    come = np.zeros(tree.n_nodes)
-    for k in range(1, tree.n_nodes):
-        come[k] = come[tree.parents[k]] + tree.costs[k]
-    return come
-
-
 @pytest.mark.parametrize(("u_max", "seed"), INTERIOR_CASES)
 def test_interior_shortcut_resimulates_independently(paper_model, u_max, seed):
     """The improved path, re-simulated edge by edge by a plain RK4 of the pendulum's own
     equations (tests/conftest.py: no code shared with the planner) from the start, joins,
     ends where each edge says at the cost it says, keeps the input limit and ends in the
     goal ball; `check_plan` agrees."""
-    from tests.conftest import pendulum_edge
-
     from rrtcolearn.evaluate import check_plan
     from rrtcolearn.planning.improve import interior_shortcuts
 
-    planner = _planner(paper_model, u_max)
-    p = _solve(planner, seed)
+    planner = swingup_planner(paper_model, u_max)
+    p = first_solution(planner, seed)
     first = p.path_cost
     q = interior_shortcuts(planner, p)
     rec = q.extra["interior"]
     assert rec["kept"] >= 1 and q.path_cost < first
     # the rest of the path was re-attached behind a shortcut: more new nodes than shortcuts
     assert rec["added"] > rec["kept"]
-    x, cost = START, 0.0
-    for e in q.edges():
-        assert np.abs(np.asarray(e["from"]) - x).max() < 1e-12
-        states, inputs, c = pendulum_edge(e, q.time_weight, q.dt)
-        assert np.abs(states[-1] - e["to"]).max() < 1e-9
-        assert c == pytest.approx(e["cost"], rel=1e-9, abs=1e-12)
-        if u_max is not None:
-            assert np.abs(inputs).max() <= u_max + 1e-9
-        x, cost = states[-1], cost + c
-    assert cost == pytest.approx(q.path_cost, rel=1e-9)
-    assert np.linalg.norm(x - GOAL) <= 0.1
+    assert_path_resimulates(q, u_max)
     r = check_plan(paper_model.system, q, goal_fn=planner.problem.goal_distance)
     assert r["path_cost"] == pytest.approx(q.path_cost, rel=1e-9)
     assert "shooting" in q.duration_by
@@ -166,32 +127,21 @@ def test_interior_shortcuts_keep_the_tree(paper_model, u_max, seed):
     plan's cost)."""
     from rrtcolearn.planning.improve import interior_shortcuts
 
-    planner = _planner(paper_model, u_max)
-    p = _solve(planner, seed)
-    t = p.tree
-    m = t.n_nodes
-    before = (t.states[:m].copy(), t.parents[:m].copy(), t.costs[:m].copy())
+    planner = swingup_planner(paper_model, u_max)
+    p = first_solution(planner, seed)
+    before = tree_snapshot(p.tree)
     q = interior_shortcuts(planner, p)
-    t = q.tree
-    assert t.n_nodes == m + q.extra["interior"]["added"]
-    assert np.array_equal(t.states[:m], before[0]) and np.array_equal(t.parents[:m], before[1])
-    assert np.array_equal(t.costs[:m], before[2])
-    assert t.parents[0] == -1 and all(0 <= t.parents[k] < k for k in range(1, t.n_nodes))
-    assert q.path_nodes == t.path_to(q.path_nodes[-1])
-    assert _costs_to_come(t)[q.path_nodes[-1]] == pytest.approx(q.path_cost, rel=1e-12)
-    for e in _tree_edges(q)[m - 1 :]:  # the new edges re-simulate from their parents
-        r = edge_trajectory(paper_model.system, e, q.time_weight, q.dt)
-        assert np.abs(r.states[-1] - e["to"]).max() < 1e-9
+    assert_grown_by_leaves(before, q, q.extra["interior"]["added"], paper_model.system)
 
 
 def test_shortcut_never_dearer_and_deterministic(paper_model):
     """`shortcut` (goal, then interior shortcuts: the anytime hook) never returns a dearer
     path than it was given, and the same plan gives the same path, bit for bit."""
-    planner = _planner(paper_model, 2.0)
+    planner = swingup_planner(paper_model, 2.0)
     for seed in range(4):
-        first = _solve(planner, seed).path_cost
-        a = shortcut(planner, _solve(planner, seed))
-        b = shortcut(planner, _solve(planner, seed))
+        first = first_solution(planner, seed).path_cost
+        a = shortcut(planner, first_solution(planner, seed))
+        b = shortcut(planner, first_solution(planner, seed))
         assert a.to_dict()["path"] == b.to_dict()["path"]
         assert a.extra["interior"] == b.extra["interior"]
         assert a.path_cost <= first
@@ -202,9 +152,9 @@ def test_interior_shortcuts_are_deterministic(paper_model, u_max, seed):
     """The same plan gives the same interior shortcuts, bit for bit."""
     from rrtcolearn.planning.improve import interior_shortcuts
 
-    planner = _planner(paper_model, u_max)
-    a = interior_shortcuts(planner, _solve(planner, seed))
-    b = interior_shortcuts(planner, _solve(planner, seed))
+    planner = swingup_planner(paper_model, u_max)
+    a = interior_shortcuts(planner, first_solution(planner, seed))
+    b = interior_shortcuts(planner, first_solution(planner, seed))
     assert a.extra["interior"]["kept"] >= 1
     assert a.to_dict()["path"] == b.to_dict()["path"]
     assert a.extra["interior"] == b.extra["interior"]
@@ -217,36 +167,21 @@ def test_landed_shortcuts_resimulate_and_keep_the_tree(paper_model, u_max):
     RK4 of the pendulum's equations (tests/conftest.py) joins, costs what each edge says,
     keeps the input limit and ends in the goal ball; only leaves are added; the same plan
     gives the same path, bit for bit; and it is never dearer on any seed."""
-    from tests.conftest import pendulum_edge
-
     from rrtcolearn.planning.improve import landed_shortcuts
 
-    planner = _planner(paper_model, u_max)
+    planner = swingup_planner(paper_model, u_max)
     kept = None
     for seed in range(8):
-        p = _solve(planner, seed)
-        first, m = p.path_cost, p.tree.n_nodes
-        before = (p.tree.states[:m].copy(), p.tree.parents[:m].copy())
+        p = first_solution(planner, seed)
+        first, before = p.path_cost, tree_snapshot(p.tree)
         q = landed_shortcuts(planner, p)
         assert q.path_cost <= first
         if q.extra["landed"]["kept"] and kept is None:
             kept = seed
             assert q.path_cost < first
-            assert q.tree.n_nodes == m + q.extra["landed"]["added"]
-            assert np.array_equal(q.tree.states[:m], before[0])
-            assert np.array_equal(q.tree.parents[:m], before[1])
-            x, cost = START, 0.0
-            for e in q.edges():
-                assert np.abs(np.asarray(e["from"]) - x).max() < 1e-12
-                states, inputs, c = pendulum_edge(e, q.time_weight, q.dt)
-                assert np.abs(states[-1] - e["to"]).max() < 1e-9
-                assert c == pytest.approx(e["cost"], rel=1e-9, abs=1e-12)
-                if u_max is not None:
-                    assert np.abs(inputs).max() <= u_max + 1e-9
-                x, cost = states[-1], cost + c
-            assert cost == pytest.approx(q.path_cost, rel=1e-9)
-            assert np.linalg.norm(x - GOAL) <= 0.1
-            again = landed_shortcuts(planner, _solve(planner, seed))
+            assert_grown_by_leaves(before, q, q.extra["landed"]["added"], paper_model.system)
+            assert_path_resimulates(q, u_max)
+            again = landed_shortcuts(planner, first_solution(planner, seed))
             assert again.to_dict()["path"] == q.to_dict()["path"]
             assert again.extra["landed"] == q.extra["landed"]
     assert kept is not None

@@ -11,9 +11,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from tests.conftest import rk4_numpy
-from tests.test_improve import GOAL, START, _costs_to_come, _planner, _solve, _tree_edges
+from tests.swingup import (
+    GOAL,
+    START,
+    assert_grown_by_leaves,
+    first_solution,
+    swingup_planner,
+    tree_snapshot,
+)
 
-from rrtcolearn.evaluate import check_plan, edge_trajectory
+from rrtcolearn.evaluate import check_plan
 from rrtcolearn.planning.improve import multiple_shooting
 
 # first paths of the paper's pendulum model that multiple shooting turns into one extremal
@@ -23,8 +30,8 @@ CASES = [(None, 0), (2.0, 2)]
 
 @pytest.mark.parametrize(("u_max", "seed"), CASES)
 def test_one_extremal_resimulated_independently(paper_model, u_max, seed):
-    planner = _planner(paper_model, u_max)
-    p = _solve(planner, seed)
+    planner = swingup_planner(paper_model, u_max)
+    p = first_solution(planner, seed)
     first = p.path_cost
     q = multiple_shooting(planner, p)
     rec = q.extra["multiple_shooting"]
@@ -63,31 +70,22 @@ def test_one_extremal_resimulated_independently(paper_model, u_max, seed):
 
 @pytest.mark.parametrize(("u_max", "seed"), CASES)
 def test_only_leaves_are_added_and_every_edge_resimulates(paper_model, u_max, seed):
-    planner = _planner(paper_model, u_max)
-    p = _solve(planner, seed)
-    t = p.tree
-    m = t.n_nodes
-    before = (t.states[:m].copy(), t.parents[:m].copy(), t.costs[:m].copy())
+    planner = swingup_planner(paper_model, u_max)
+    p = first_solution(planner, seed)
+    before = tree_snapshot(p.tree)
     q = multiple_shooting(planner, p)
-    t = q.tree
-    assert t.n_nodes == m + len(q.path_nodes) - 1 and q.path_nodes[0] == 0
-    assert np.array_equal(t.states[:m], before[0]) and np.array_equal(t.parents[:m], before[1])
-    assert np.array_equal(t.costs[:m], before[2])
-    assert all(0 <= t.parents[k] < k for k in range(1, t.n_nodes))
-    assert q.path_nodes == t.path_to(q.path_nodes[-1])
-    assert _costs_to_come(t)[q.path_nodes[-1]] == pytest.approx(q.path_cost, rel=1e-12)
-    for e in _tree_edges(q)[m - 1 :]:
-        r = edge_trajectory(paper_model.system, e, q.time_weight, q.dt)
-        assert np.abs(r.states[-1] - e["to"]).max() < 1e-9
+    # the chain hangs below the root: one new node per edge of the path
+    assert q.path_nodes[0] == 0
+    assert_grown_by_leaves(before, q, len(q.path_nodes) - 1, paper_model.system)
     assert set(q.duration_by) == {"shooting"}
 
 
 @pytest.mark.parametrize(("u_max", "seed"), CASES)
 def test_deterministic(paper_model, u_max, seed):
     """The same plan gives the same extremal, bit for bit."""
-    planner = _planner(paper_model, u_max)
-    a = multiple_shooting(planner, _solve(planner, seed))
-    b = multiple_shooting(planner, _solve(planner, seed))
+    planner = swingup_planner(paper_model, u_max)
+    a = multiple_shooting(planner, first_solution(planner, seed))
+    b = multiple_shooting(planner, first_solution(planner, seed))
     assert a.extra["multiple_shooting"]["kept"]
     assert a.to_dict()["path"] == b.to_dict()["path"]
     assert a.extra["multiple_shooting"] == b.extra["multiple_shooting"]
@@ -96,13 +94,13 @@ def test_deterministic(paper_model, u_max, seed):
 def test_stop_and_never_dearer(paper_model):
     """``stop()`` true at once: the plan as it was; run again on its own result, never
     dearer."""
-    planner = _planner(paper_model)
-    p = _solve(planner, 0)
+    planner = swingup_planner(paper_model)
+    p = first_solution(planner, 0)
     cost, nodes = p.path_cost, p.tree.n_nodes
     q = multiple_shooting(planner, p, stop=lambda: True)
     assert q.path_cost == cost and q.tree.n_nodes == nodes
     assert q.extra["multiple_shooting"]["why"] == "stopped"
-    once = multiple_shooting(planner, _solve(planner, 0))
+    once = multiple_shooting(planner, first_solution(planner, 0))
     cost = once.path_cost
     assert multiple_shooting(planner, once).path_cost <= cost
 

@@ -5,24 +5,20 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tests.swingup import plan_swingup, swingup_planner
 
-from rrtcolearn import pipeline
 from rrtcolearn.anytime import solve_with_restarts
 from rrtcolearn.cli.planning import plan_summary
 from rrtcolearn.config import PlanConfig
 from rrtcolearn.evaluate import resimulate
-from rrtcolearn.planning.rrt import RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
 
-START, GOAL = [-np.pi, 0.0], [0.0, 0.0]
 SEEDS = (0, 1, 2, 3)
 
 
 def _plan(model, seed, polish=True, time_limit=None, iterations=3000):
-    cfg = model.config.model_copy(update={"plan": model.config.plan.model_copy(
-        update={"polish": polish})})
-    return pipeline.plan(model, START, GOAL, 0.1, seed, config=cfg, time_limit=time_limit,
-                         max_iterations=iterations)
+    return plan_swingup(model, seed, polish=polish, time_limit=time_limit,
+                        max_iterations=iterations)
 
 
 def test_off_by_default():
@@ -68,9 +64,7 @@ def test_the_summary_shows_both_costs(paper_model):
 
 def test_one_solve_needs_no_budget(paper_model):
     """``solves=1`` stops by itself: no budget is required (the plain plan needs none)."""
-    planner = RRTCoLearn(
-        pipeline.make_problem(paper_model.system, paper_model.config, START, GOAL, 0.1),
-        paper_model.functions, paper_model.planner_settings())
+    planner = swingup_planner(paper_model)
     p = solve_with_restarts(planner.solve, TerminationCondition(None, None), 2, solves=1)
     assert p.extra["anytime"]["solves"] == 1 and p.solved
     with pytest.raises(ValueError, match="solves"):
