@@ -9,6 +9,10 @@ funnel extremal that passes near a tree node it often does: the funnel's solutio
 to the node in small steps (continuation), each solved backwards from the goal, where the unknowns
 are the goal's costate and the duration; a last forward solve from the node itself
 (`shooting.shoot`) gives the edge the planner checks like any other.
+
+The planner's funnel is one query's (`FunnelStream`): its extremals are drawn from a stream
+of the query's seed, and each part is built once and shared by the query's solves (anytime
+planning's restarts), so that only the first solve that needs a part pays for it.
 """
 
 from __future__ import annotations
