@@ -25,8 +25,10 @@ the machine ran.
 
 from __future__ import annotations
 
+import inspect
 import time
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 
@@ -91,6 +93,14 @@ def _improved(improve: Callable[[Plan, Callable[[], bool]], Plan], p: Plan, frac
     return out, steps, time.thread_time() - c0, time.perf_counter() - t0
 
 
+def _takes_query(solve: Callable[..., Plan]) -> bool:
+    """Whether ``solve`` has a parameter ``query`` (the query's seed)."""
+    try:
+        return "query" in inspect.signature(solve).parameters
+    except (TypeError, ValueError):  # (a callable without a signature to inspect)
+        return False
+
+
 def solve_with_restarts(solve: Callable[..., Plan],
                         termination: TerminationCondition, seed: int = 0,
                         improve: Callable[[Plan, Callable[[], bool]], Plan] | None = None,
@@ -127,12 +137,18 @@ def solve_with_restarts(solve: Callable[..., Plan],
     allowances (1: each up to what the solves took). ``in_steps``: the allowances in
     improvement steps (``allowance`` x the solves' iterations) under any budget, so that the
     improvements do not depend on the machine's speed (under a time budget the solves still
-    do where the budget runs out)."""
+    do where the budget runs out).
+
+    A ``solve`` that takes ``query`` (`RRTCoLearn.solve`) is told the query's seed: its goal
+    funnel is drawn from that seed's stream and built once for all the query's solves
+    (`planning.funnel.FunnelStream`; docs/anytime.md, "One funnel per query")."""
     if solves is None and termination.time_limit is None and \
             termination.max_iterations is None and termination.cpu_time_limit is None:
         raise ValueError("an anytime plan needs a budget: a time, CPU time or iteration limit")
     if solves is not None and solves < 1:
         raise ValueError(f"solves must be at least 1, not {solves}")
+    if _takes_query(solve):
+        solve = partial(solve, query=seed)
     termination.start()
     cpu0 = time.process_time()
     children = np.random.SeedSequence(seed)

@@ -9,6 +9,10 @@ funnel extremal that passes near a tree node it often does: the funnel's solutio
 to the node in small steps (continuation), each solved backwards from the goal, where the unknowns
 are the goal's costate and the duration; a last forward solve from the node itself
 (`shooting.shoot`) gives the edge the planner checks like any other.
+
+The planner's funnel is one query's (`FunnelStream`): its extremals are drawn from a stream
+of the query's seed, and each part is built once and shared by the query's solves (anytime
+planning's restarts), so that only the first solve that needs a part pays for it.
 """
 
 from __future__ import annotations
@@ -54,9 +58,9 @@ class GoalFunnel:
 
     @classmethod
     def build(cls, system: System, goal: np.ndarray, offset: Callable[[np.ndarray], np.ndarray],
-              rng: np.random.Generator, *, n_simulations: int, time_weight: float, dt: float,
-              max_duration: float, max_cost: float, scale: np.ndarray, tolerance: float,
-              min_duration: float = 0.0,
+              rng: np.random.Generator | FunnelDraws, *, n_simulations: int,
+              time_weight: float, dt: float, max_duration: float, max_cost: float,
+              scale: np.ndarray, tolerance: float, min_duration: float = 0.0,
               box: tuple[np.ndarray, np.ndarray] | None = None) -> GoalFunnel:
         """``n_simulations`` extremals from ``goal`` with costates drawn as the data's
         (uniform steering parameters, H* = 0), integrated backwards for at most
@@ -67,10 +71,30 @@ class GoalFunnel:
         when it wraps them). States closer than ``min_duration`` to the goal are dropped:
         where little time is left, the boundary value problem from near them can be too
         ill-conditioned to solve (the acrobot's, docs/method.md). ``box`` is the state constraints
-        (low, high), the sampling box by default."""
+        (low, high), the sampling box by default. ``rng``: the generator the steering
+        parameters are drawn from, or a query's shared stream (`FunnelDraws`: the next
+        ``n_simulations`` extremals of `FunnelStream`, built once per query)."""
+
+        def of(params: np.ndarray) -> GoalFunnel:
+            return cls._of_params(system, goal, offset, params, time_weight=time_weight, dt=dt,
+                                  max_duration=max_duration, max_cost=max_cost, scale=scale,
+                                  tolerance=tolerance, min_duration=min_duration, box=box)
+
+        if isinstance(rng, FunnelDraws):
+            return rng.next(n_simulations, system, of)
+        return of(rng.uniform(system.param_low, system.param_high,
+                              (n_simulations, system.n_params)))
+
+    @classmethod
+    def _of_params(cls, system: System, goal: np.ndarray,
+                   offset: Callable[[np.ndarray], np.ndarray], params: np.ndarray, *,
+                   time_weight: float, dt: float, max_duration: float, max_cost: float,
+                   scale: np.ndarray, tolerance: float, min_duration: float,
+                   box: tuple[np.ndarray, np.ndarray] | None) -> GoalFunnel:
+        """`build`'s funnel of the extremals with steering parameters ``params`` (S, p)."""
         n = system.n_states
         goal = np.asarray(goal, dtype=np.float64)
-        params = rng.uniform(system.param_low, system.param_high, (n_simulations, system.n_params))
+        n_simulations = len(params)
         lam, valid = system.costate_from_params(np.repeat(goal[None], n_simulations, axis=0),
                                                 params, time_weight)
         lam = lam[valid]
@@ -162,3 +186,83 @@ class GoalFunnel:
             step = min(2.0 * step, _MAX_STEP)
         n = self.system.n_states
         return sol[1][n : 2 * n].copy(), duration
+
+
+# the spawn key, under the query's seed, of the funnel's random stream ("funn"): apart from
+# every stream anytime planning's solves draw from (their seeds are integers generated from
+# children (0,), (1,), ... of the query's seed sequence)
+FUNNEL_STREAM = 0x66756E6E
+
+
+class FunnelStream:
+    """The goal funnel of one query, shared by its solves.
+
+    The steering parameters of the funnel's extremals come from a random stream of their own
+    that depends on the query's seed only (`of_query`), not on a solve's generator: the k-th
+    extremal is the same in every solve of the query. The funnel is built in parts (the
+    automatic funnel's first part and each doubling, `connections.FunnelConnection`); each
+    part, the extremals [first, first + k) of the stream, is built once, when a solve first
+    needs it, and kept: a query's later solves take the parts built so far as they are
+    (their kd-trees too) and build only those beyond. A solve uses the parts its own growth
+    asks for, in its own turn (`draws`), so what it does is the same whichever solves ran
+    before it: the plans stay a function of their seeds. A stream serves one planner (the
+    parts are its funnel's, of its settings)."""
+
+    def __init__(self, rng: np.random.Generator):
+        self._rng = rng
+        self._params: np.ndarray | None = None  # (drawn, p): the stream's parameters so far
+        self.parts: dict[tuple[int, int], GoalFunnel] = {}  # (first, k) -> the part
+        self.built = 0  # parts built (each once)
+
+    @classmethod
+    def of_query(cls, query: int | np.random.SeedSequence) -> FunnelStream:
+        """The funnel's stream of the query with seed ``query``: spawned under it
+        (`FUNNEL_STREAM`)."""
+        if isinstance(query, np.random.SeedSequence):
+            seq = np.random.SeedSequence(query.entropy,
+                                         spawn_key=(*query.spawn_key, FUNNEL_STREAM))
+        else:
+            seq = np.random.SeedSequence(int(query), spawn_key=(FUNNEL_STREAM,))
+        return cls(np.random.default_rng(seq))
+
+    def draws(self) -> FunnelDraws:
+        """One funnel's parts in turn, from the stream's first extremal (`GoalFunnel.build`
+        with this as its ``rng``)."""
+        return FunnelDraws(self)
+
+    def part(self, first: int, k: int, system: System,
+             build: Callable[[np.ndarray], GoalFunnel]) -> GoalFunnel:
+        """The funnel of the stream's extremals [first, first + k): ``build(params)`` the
+        first time, then the same part. The stream's parameters are drawn in order (a
+        generator's uniform draws split into several calls are the same numbers as in one)."""
+        key = (first, k)
+        if key not in self.parts:
+            p = system.n_params
+            have = 0 if self._params is None else len(self._params)
+            if have < first + k:
+                more = self._rng.uniform(system.param_low, system.param_high,
+                                         (first + k - have, p))
+                self._params = more if self._params is None else \
+                    np.concatenate([self._params, more])
+            self.parts[key] = build(self._params[first : first + k])
+            self.built += 1
+        return self.parts[key]
+
+    def __len__(self) -> int:
+        """Extremals drawn so far."""
+        return 0 if self._params is None else len(self._params)
+
+
+class FunnelDraws:
+    """One funnel's way through a `FunnelStream`: each call of `GoalFunnel.build` with it
+    gives the next ``n_simulations`` extremals of the stream (built once per stream)."""
+
+    def __init__(self, stream: FunnelStream):
+        self.stream = stream
+        self.drawn = 0
+
+    def next(self, k: int, system: System, build: Callable[[np.ndarray], GoalFunnel]
+             ) -> GoalFunnel:
+        part = self.stream.part(self.drawn, k, system, build)
+        self.drawn += k
+        return part

@@ -33,6 +33,7 @@ from rrtcolearn.planning.contracts import (
 )
 from rrtcolearn.planning.controls import BATCH_ITERATIONS, RandomControls
 from rrtcolearn.planning.diagnosis import diagnose
+from rrtcolearn.planning.funnel import FunnelStream
 from rrtcolearn.planning.learned import LearnedSteering
 from rrtcolearn.planning.nearest import NodeIndex
 from rrtcolearn.planning.problem import PlanningProblem
@@ -59,13 +60,15 @@ __all__ = ["AUTO_FUNNEL", "CONNECT_AFTER", "CONTROLS_AFTER", "FUNNEL_START", "OU
 @dataclass
 class Solve:
     """What one `RRTCoLearn.solve` keeps between iterations: the growing tree, the loop's
-    counters, the schedule, and the goal connections by name in the order they are tried
-    (None: off until the schedule switches it on)."""
+    counters, the schedule, the goal connections by name in the order they are tried
+    (None: off until the schedule switches it on), and the stream the goal funnel's
+    extremals come from (the query's, shared by its solves)."""
 
     tree: GrowingTree
     progress: Progress
     schedule: Schedule
     connections: dict[str, Connection | None]
+    funnel: FunnelStream
 
 
 class RRTCoLearn:
@@ -116,12 +119,20 @@ class RRTCoLearn:
         self.controls = None if self.propagator.control_box is None else \
             RandomControls(self.propagator)
         self.extra_connections = tuple(connections)
+        # the goal funnel of the last query solved: its key and its stream (`funnel_stream`)
+        self._funnel: tuple[tuple, FunnelStream] | None = None
 
     def solve(self, termination: TerminationCondition, seed: int | np.random.SeedSequence = 0,
-              control_scale: float = 1.0) -> Plan:
+              control_scale: float = 1.0, query: int | np.random.SeedSequence | None = None
+              ) -> Plan:
         """Grow the tree until a node reaches the goal region or ``termination`` says stop;
         random-control inputs drawn from the input box shrunk by ``control_scale`` towards
-        zero (`controls.RandomControls.draw_box`; anytime planning's later solves)."""
+        zero (`controls.RandomControls.draw_box`; anytime planning's later solves).
+        ``query``: the seed of the query this solve is one of (anytime planning's solves
+        after the first: `anytime.solve_with_restarts`), by default ``seed`` (a query of
+        its own): the goal funnel's extremals are drawn from a stream of the query's seed
+        and built once per query (`funnel.FunnelStream`, `funnel_stream`), so a query's
+        later solves reuse what its earlier ones built."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         controls = self.controls
         if controls is not None:
@@ -133,7 +144,8 @@ class RRTCoLearn:
         rng = np.random.default_rng(seed)
         cpu0 = time.thread_time()
         termination.start()
-        run = self.start(rng)  # a goal funnel asked for is built here: it counts as planning
+        # a goal funnel asked for is built here: it counts as planning
+        run = self.start(rng, seed if query is None else query)
         tree, progress, schedule = run.tree, run.progress, run.schedule
         if progress.best_goal <= prob.goal_tolerance:
             progress.goal_node = 0
@@ -156,7 +168,7 @@ class RRTCoLearn:
                 to_goal = rng.random() < s.goal_bias
             target = prob.sample_goal(rng) if to_goal else \
                 rng.uniform(sys.state_low, sys.state_high)
-            if to_goal and self._connect(rng, run):
+            if to_goal and self._connect(run):
                 break
             self._expand(rng, run, target, to_goal)
         if controls is not None and controls.pending >= 0:
@@ -172,10 +184,13 @@ class RRTCoLearn:
             return 1.0
         return self.controls.narrowest_scale()
 
-    def start(self, rng: np.random.Generator) -> Solve:
+    def start(self, rng: np.random.Generator,
+              query: int | np.random.SeedSequence | None = None) -> Solve:
         """The state of a new `solve`: the tree at the start, its node indices, the schedule
-        and the goal connections on from the start (a funnel asked for is built here, from
-        ``rng``)."""
+        and the goal connections on from the start (a funnel asked for is built here); the
+        goal funnel's extremals from the stream of the query with seed ``query``
+        (`funnel_stream`), or with None from ``rng``, when the funnel is built (a stream
+        of this solve alone)."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         n = sys.n_states
         weight = np.asarray(s.metric_scale, dtype=np.float64)
@@ -201,36 +216,54 @@ class RRTCoLearn:
         schedule = Schedule.start(s, controls=self.controls is not None
                                   and s.control_edges is not False,
                                   learned=self.model is not None, can_connect=can_connect)
+        funnel = FunnelStream(rng) if query is None else self.funnel_stream(query)
         on: dict[str, Connection | None] = {"shooting": None, "funnel": None, "lqr": None}
         for name, value in Schedule.initial(s).items():
-            on[name] = self.connection(name, rng, tree, value)
+            on[name] = self.connection(name, funnel, tree, value)
         for make in self.extra_connections:
             extra = make(self)
             on[extra.name] = extra
         return Solve(tree, Progress(best_goal=float(prob.goal_distance(prob.start)[0])),
-                     schedule, on)
+                     schedule, on, funnel)
 
-    def connection(self, name: str, rng: np.random.Generator, tree: GrowingTree,
+    def funnel_stream(self, query: int | np.random.SeedSequence) -> FunnelStream:
+        """The goal funnel's stream of the query with seed ``query``, shared by the query's
+        solves (`funnel.FunnelStream`). The planner keeps the last query's only: a solve of
+        another query starts a new one (what it builds is the same as if built afresh, so
+        plans do not depend on the order of queries), and at most one query's funnel is
+        held in memory between solves."""
+        if isinstance(query, np.random.SeedSequence):
+            key = ("sequence", query.entropy, tuple(query.spawn_key))
+        else:
+            key = ("int", int(query))
+        if self._funnel is None or self._funnel[0] != key:
+            self._funnel = (key, FunnelStream.of_query(query))
+        return self._funnel[1]
+
+    def connection(self, name: str, funnel: FunnelStream, tree: GrowingTree,
                    size: int | None = None) -> Connection:
         """The planner's goal connection ``name`` ("shooting", "funnel", "lqr"), built for a
         solve on ``tree``; the funnel of ``size`` extremals, or (None) the automatic one:
-        FUNNEL_START extremals doubling up to AUTO_FUNNEL (`schedule`)."""
+        FUNNEL_START extremals doubling up to AUTO_FUNNEL (`schedule`), its parts taken
+        from ``funnel`` (built there once per query)."""
         if name == "shooting":
             return ShootingConnection(self.propagator, self.model)
         if name == "funnel":
             if size is None:
-                return FunnelConnection.build(self.propagator, rng, tree.weight, FUNNEL_START,
-                                              limit=AUTO_FUNNEL, grow_after=CONNECT_AFTER)
-            return FunnelConnection.build(self.propagator, rng, tree.weight, int(size))
+                return FunnelConnection.build(self.propagator, funnel.draws(), tree.weight,
+                                              FUNNEL_START, limit=AUTO_FUNNEL,
+                                              grow_after=CONNECT_AFTER)
+            return FunnelConnection.build(self.propagator, funnel.draws(), tree.weight,
+                                          int(size))
         return LQRConnection(self.propagator)
 
-    def _connect(self, rng: np.random.Generator, run: Solve) -> bool:
+    def _connect(self, run: Solve) -> bool:
         """A goal-biased iteration's connections, each on tried in turn (those the schedule
         says are due switched on first); True when one reached the goal region."""
         progress, on, schedule = run.progress, run.connections, run.schedule
         progress.since_nearer += 1
         for name in schedule.connections_due(progress, on):
-            on[name] = self.connection(name, rng, run.tree)
+            on[name] = self.connection(name, run.funnel, run.tree)
         for name in list(on):
             connection = on[name]
             if connection is None:

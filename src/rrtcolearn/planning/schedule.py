@@ -35,7 +35,9 @@ CONTROLS_AFTER = 30
 # the funnel was built at its full size only once shooting had failed from 20 nodes: on the
 # unbounded cart-pole and acrobot that came thousands of iterations after the tree was near
 # enough for the funnel to connect at its first or second try, and the 20 000 extremals'
-# build took most of the CPU of a plan that then connected at once.
+# build took most of the CPU of a plan that then connected at once. Each part (the first and
+# each doubling) is built once per query and reused by the query's later solves
+# (`funnel.FunnelStream`; docs/anytime.md, "One funnel per query").
 AUTO_FUNNEL = 20_000
 FUNNEL_START = AUTO_FUNNEL // 8
 
