@@ -340,6 +340,12 @@ class PlanConfig(_Section):
         "make a learned edge that came halfway to its aim land on it; 0: off, the paper's "
         "planner. 6 lowered the pendulum's first-path cost by 7% at 1.25-1.5x its planning "
         "CPU on the paper's model (docs/landing.md)")
+    edge_cost_ratio: float | None = Field(
+        None, ge=0, description="reject a learned edge whose re-simulated cost exceeds this "
+        "multiple of the learned J between its own ends (a draw around U's guess that "
+        "reached near its aim with a jerk); 0: off, the paper's planner; none: derived from "
+        "the data, the 99% quantile of its segments' costs over J from their other "
+        "neighbours (docs/ablation.md)")
     parent_cost_to_come: bool = Field(
         False, description="the learned steering's parent: the candidate with the least "
         "cost-to-come plus predicted J to the target (RRT*'s choose-parent) instead of the "
