@@ -136,7 +136,7 @@ class LearnedSteering:
         """Forget the landing record (`landing`): at the start of every solve."""
         self.errors: list[float] = []  # per edge returned: its end's distance to its aim
         self.refined = [0, 0, 0]  # refinements tried, landed and kept, failed in a row
-        # draws found far dearer than J (`costly_edge`), and of them replaced by U's guess
+        # draws found far dearer than J (`costly_edge`), and U's guess taken instead of all
         self.costly = [0, 0]
 
     def landing(self) -> dict:
@@ -299,15 +299,6 @@ class LearnedSteering:
         if self.settings.refine_iterations:
             edge = self.refine(x0, edge, aim, to_goal)
         n = self.problem.system.n_states
-        if self.cost_ratio and self.costly_edge(x0, tree.shifts[parent], edge, aim):
-            self.costly[0] += 1
-            # U's guess itself, undrawn: the data's extremal for this query
-            edge = self.guess_edge(x0, aim, tree.weight)
-            if edge is None or self.costly_edge(x0, tree.shifts[parent], edge, aim):
-                # the learned functions reject it, as V rejects a query
-                self.propagator.rejected = "invalid_query"
-                return parent, None
-            self.costly[1] += 1
         end = edge.traj[-1:, :n].copy()
         self.errors.append(0.0 if edge.hit else
                            float(np.linalg.norm(self._offset(aim, False)(end))))
@@ -390,9 +381,22 @@ class LearnedSteering:
         x0 = states[parent]
         aim = aims[row] if aim_images else target
         sigma = s.sigma_goal if to_goal else s.sigma
+        shift = tree.shifts[parent]
         if s.control_samples > 1 and not self._circular.any():
-            draws = self._draws(rng, x0, prediction, sigma, s.control_samples)
-            return parent, self.propagator.extremal_edges(x0, *draws, aim, weight), aim
+            params, costates = self._draws(rng, x0, prediction, sigma, s.control_samples)
+            edge = self.propagator.extremal_edges(x0, params, costates, aim, weight)
+            dropped = False
+            while self.cost_ratio and edge is not None and \
+                    self.costly_edge(x0, shift, edge, aim):
+                # the next nearest draw instead
+                self.costly[0] += 1
+                dropped = True
+                other = (costates != edge.costate).any(axis=1)
+                params, costates = params[other], costates[other]
+                edge = self.propagator.extremal_edges(x0, params, costates, aim, weight) \
+                    if other.any() else None
+            return parent, self._guess_instead(x0, shift, aim, weight) if dropped and \
+                edge is None else edge, aim
         # one draw at a time (the paper's planner)
         cands = (self._edge(rng, x0, prediction, sigma, lam, z0)
                  for _ in range(s.control_samples))
@@ -416,4 +420,18 @@ class LearnedSteering:
                     traj_c[:, :n], traj_c[:, n : 2 * n])).max())
                 edge = Edge(traj_c, k + 1, float(traj_c[-1, 2 * n]), u_c, False, params_c,
                             cand.costate)
+        if self.cost_ratio and edge is not None and self.costly_edge(x0, shift, edge, aim):
+            self.costly[0] += 1
+            edge = self._guess_instead(x0, shift, aim, weight)
         return parent, edge, aim
+
+    def _guess_instead(self, x0: np.ndarray, shift: np.ndarray, aim: np.ndarray,
+                       weight: np.ndarray) -> Edge | None:
+        """When every draw was far dearer than J (`costly_edge`): U's guess itself if it
+        is not, else None, the learned functions rejecting the query (as V does)."""
+        edge = self.guess_edge(x0, aim, weight)
+        if edge is None or self.costly_edge(x0, shift, edge, aim):
+            self.propagator.rejected = "invalid_query"
+            return None
+        self.costly[1] += 1
+        return edge
