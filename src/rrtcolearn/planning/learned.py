@@ -339,7 +339,11 @@ class LearnedSteering:
         """Alg. 1's expansion: the parent with the least predicted J among the valid queries
         (with ``parent_cost_to_come``: the least cost-to-come plus J), steered by U.
         (parent, edge); the edge is None (and ``rejected`` says why) when no node is within
-        reach, V rejects every query or no draw gives an edge."""
+        reach, V rejects every query or no draw gives an edge.
+
+        With ``edge_cost_ratio`` (`cost_ratio`) a draw dearer than that multiple of J
+        (`costly_edge`) is passed over for the next nearest, then for U's guess itself;
+        with none left the query counts as rejected (``invalid_query``)."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         states, weight, wrapped = tree.states, tree.weight, tree.wrapped
         lam, z0, reach2 = self._lam, self._z0, self.reach * self.reach
