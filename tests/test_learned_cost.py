@@ -99,7 +99,7 @@ def test_steering_keeps_the_nearest_draw_within_the_bound(models, name):
     and from its start to its aim, J queried here directly); where the unchecked edge is
     within it, both are the same edge."""
     model = models[name]
-    rule, off = _planner(model, None), _planner(model, 0.0)
+    rule, off = _planner(model, "data"), _planner(model, 0.0)
     ratio = data_cost_ratio(model.functions)
     assert rule.learned.cost_ratio == ratio and ratio > 1.0
     tree, rng = rule.start(np.random.default_rng(0)).tree, np.random.default_rng(11)

@@ -128,7 +128,7 @@ class LearnedSteering:
         self._angles = list(sys.angle_dims)
         self.land_tolerance = LAND_FRACTION * problem.goal_tolerance
         self.guess = None  # U's last prediction (`propose`), for `guess_edge`
-        self.cost_ratio = data_cost_ratio(model) if s.edge_cost_ratio is None \
+        self.cost_ratio = data_cost_ratio(model) if s.edge_cost_ratio == "data" \
             else float(s.edge_cost_ratio)
         self.reset()
 
