@@ -340,6 +340,15 @@ class PlanConfig(_Section):
         "make a learned edge that came halfway to its aim land on it; 0: off, the paper's "
         "planner. 6 lowered the pendulum's first-path cost by 7% at 1.25-1.5x its planning "
         "CPU on the paper's model (docs/landing.md)")
+    edge_cost_ratio: Annotated[float, Field(ge=0)] | Literal["data"] = Field(
+        0.0, description="the learned steering keeps its nearest draw whose "
+        "re-simulated cost is at most this multiple of the learned J (the lesser of J "
+        "between the edge's ends and J from its start to its aim), else U's guess itself if "
+        "that is within it, else no edge; 0: off, the paper's planner; \"data\": derived from "
+        "the data, the 99% quantile of its segments' costs over J from their other neighbours "
+        "(1.3-2.3 on the bench models). Off by default: on the acrobot and cart-pole it did "
+        "not lower the first or the 10-s cost beyond the seeds' spread and cost up to 2.4x "
+        "the CPU (docs/ablation.md)")
     parent_cost_to_come: bool = Field(
         False, description="the learned steering's parent: the candidate with the least "
         "cost-to-come plus predicted J to the target (RRT*'s choose-parent) instead of the "

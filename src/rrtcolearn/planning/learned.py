@@ -28,6 +28,40 @@ REFINE_PROGRESS = 0.5
 # edges are not within Newton's reach of their aims the tries only cost CPU (the shipped
 # acrobot's k-NN model: 2552 tries on 10 seeds, none landed, 25% more CPU; docs/landing.md)
 REFINE_GIVE_UP = 50
+# the derived ``edge_cost_ratio``: this quantile of the data's segments' costs over J's
+# prediction for them from the other segments (`data_cost_ratio`), from at most
+# COST_RATIO_ROWS of them (evenly spaced rows: deterministic)
+COST_RATIO_QUANTILE = 0.99
+COST_RATIO_ROWS = 3000
+
+
+def data_cost_ratio(model: LearnedFunctions, quantile: float = COST_RATIO_QUANTILE,
+                    rows: int = COST_RATIO_ROWS) -> float:
+    """The ``quantile`` of cost / J over (at most ``rows`` of) the data's segments, J each
+    segment's prediction without it: the k-NN J's mean cost of its m nearest other
+    segments (leave one out), the networks' J their prediction. How far above J a true
+    extremal's cost lies in the data; 1 without data."""
+    t = model.training_
+    X, cost = t["inputs"], t["cost"]
+    if len(X) <= model.n_neighbors:
+        return 1.0
+    pick = np.unique(np.linspace(0, len(X) - 1, min(rows, len(X))).astype(np.int64))
+    if model.networks_ is not None:
+        J = model.query(X[pick])[0]
+    else:
+        m = model.n_neighbors
+        Xs = model.features_.transform(X[pick]) * model.input_scale_
+        # the segment itself is its own nearest point (its copies across an angle's seam
+        # lie a turn away)
+        _, idx = model.validity_.index_.query(Xs, m + 1)
+        source = model.source_[idx]
+        others = source != pick[:, None]
+        # the first m neighbours that are other segments (stable: nearest first)
+        order = np.argsort(~others, axis=1, kind="stable")[:, :m]
+        near = np.take_along_axis(source, order, axis=1)
+        J = cost[near].mean(axis=1)
+        J = np.clip(J, *model.cost_bounds)
+    return float(np.quantile(cost[pick] / J, quantile))
 
 
 def _truncnorm(rng: np.random.Generator, mean: float, sigma: float, lo: float, hi: float) -> float:
@@ -68,7 +102,7 @@ class LearnedSteering:
 
     Settings it reads (`settings.PlannerSettings`, "learned steering"): ``sigma``,
     ``sigma_goal``, ``decimals``, ``control_samples``, ``max_candidates``,
-    ``parent_cost_to_come``,
+    ``parent_cost_to_come``, ``edge_cost_ratio``,
     ``extend_distance``, ``max_resample``, ``data_reach`` (through ``reach``), and the
     duration's bounds ``dt`` and ``max_duration``.
     """
@@ -93,12 +127,17 @@ class LearnedSteering:
         self._lam, self._z0 = np.empty(n), np.empty(2 * n + 1)  # scratch: one extremal's start
         self._angles = list(sys.angle_dims)
         self.land_tolerance = LAND_FRACTION * problem.goal_tolerance
+        self.guess = None  # U's last prediction (`propose`), for `guess_edge`
+        self.cost_ratio = data_cost_ratio(model) if s.edge_cost_ratio == "data" \
+            else float(s.edge_cost_ratio)
         self.reset()
 
     def reset(self) -> None:
         """Forget the landing record (`landing`): at the start of every solve."""
         self.errors: list[float] = []  # per edge returned: its end's distance to its aim
         self.refined = [0, 0, 0]  # refinements tried, landed and kept, failed in a row
+        # draws found far dearer than J (`costly_edge`), and U's guess taken instead of all
+        self.costly = [0, 0]
 
     def landing(self) -> dict:
         """The plan's ``landing`` record: learned edges made, the median distance of their
@@ -108,7 +147,9 @@ class LearnedSteering:
         return {"edges": len(self.errors),
                 "median_error": float(np.median(self.errors)) if self.errors else None,
                 "on_aim": int(np.sum(np.asarray(self.errors) <= self.land_tolerance)),
-                "refined": self.refined[0], "landed": self.refined[1]}
+                "refined": self.refined[0], "landed": self.refined[1],
+                "costly": self.costly[0], "guessed": self.costly[1],
+                "cost_ratio": self.cost_ratio}
 
     def _offset(self, aim: np.ndarray, to_goal: bool):
         """States minus ``aim`` (angles the short way round), or the goal residual for a
@@ -263,12 +304,46 @@ class LearnedSteering:
                            float(np.linalg.norm(self._offset(aim, False)(end))))
         return parent, edge
 
+    def guess_edge(self, x0: np.ndarray, aim: np.ndarray, weight: np.ndarray) -> Edge | None:
+        """The edge of U's last prediction (`propose`'s ``guess``) itself from ``x0``: its
+        parameters rounded and kept in their bounds (circular ones wrapped), cut at its
+        state nearest ``aim`` like the drawn edges (with more than one draw); None when it
+        gives no edge."""
+        s = self.settings
+        lo, hi = self._bounds
+        k = lo.size - 1
+        params = np.round(self.guess[: k + 1], s.decimals)
+        circ = np.append(self._circular, False)
+        params = np.where(circ, lo + np.mod(params - lo, hi - lo), np.clip(params, lo, hi))
+        lam, z0 = self._lam, self._z0
+        if not self.propagator.start_extremal(x0, params, lam, z0):
+            return None
+        if s.control_samples > 1:
+            return self.propagator.extremal_edges(x0, params[None], lam[None], aim, weight)
+        return self.propagator.extremal_edges(x0, params[None], lam[None])
+
+    def costly_edge(self, x0: np.ndarray, shift: np.ndarray, edge: Edge, aim: np.ndarray
+                    ) -> bool:
+        """Whether ``edge`` from ``x0`` (``shift``: the parent's whole turns into the data's
+        box) costs more than ``cost_ratio`` times the learned J between its ends, or than
+        that multiple of J from ``x0`` to its ``aim``: a draw around U's guess that went
+        through large inputs where the data knows a cheaper extremal between the same
+        ends, or that paid more than the whole way to its aim should cost."""
+        n = x0.size
+        query = np.stack([np.concatenate([x0, edge.traj[-1, :n]]),
+                          np.concatenate([x0, aim])]) + np.tile(shift, 2)
+        return edge.cost > self.cost_ratio * float(self.model.query(query)[0].min())
+
     def propose(self, rng: np.random.Generator, tree: GrowingTree, target: np.ndarray,
                 to_goal: bool) -> tuple[int, Edge | None, np.ndarray]:
         """Alg. 1's expansion: the parent with the least predicted J among the valid queries
         (with ``parent_cost_to_come``: the least cost-to-come plus J), steered by U.
         (parent, edge); the edge is None (and ``rejected`` says why) when no node is within
-        reach, V rejects every query or no draw gives an edge."""
+        reach, V rejects every query or no draw gives an edge.
+
+        With ``edge_cost_ratio`` (`cost_ratio`) a draw dearer than that multiple of J
+        (`costly_edge`) is passed over for the next nearest, then for U's guess itself;
+        with none left the query counts as rejected (``invalid_query``)."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         states, weight, wrapped = tree.states, tree.weight, tree.wrapped
         lam, z0, reach2 = self._lam, self._z0, self.reach * self.reach
@@ -306,12 +381,26 @@ class LearnedSteering:
         parent = int(near[row])
         prediction = self.model.steer(query[row : row + 1],
                                       None if neighbours is None else neighbours[None])[0]
+        self.guess = prediction
         x0 = states[parent]
         aim = aims[row] if aim_images else target
         sigma = s.sigma_goal if to_goal else s.sigma
+        shift = tree.shifts[parent]
         if s.control_samples > 1 and not self._circular.any():
-            draws = self._draws(rng, x0, prediction, sigma, s.control_samples)
-            return parent, self.propagator.extremal_edges(x0, *draws, aim, weight), aim
+            params, costates = self._draws(rng, x0, prediction, sigma, s.control_samples)
+            edge = self.propagator.extremal_edges(x0, params, costates, aim, weight)
+            dropped = False
+            while self.cost_ratio and edge is not None and \
+                    self.costly_edge(x0, shift, edge, aim):
+                # the next nearest draw instead
+                self.costly[0] += 1
+                dropped = True
+                other = (costates != edge.costate).any(axis=1)
+                params, costates = params[other], costates[other]
+                edge = self.propagator.extremal_edges(x0, params, costates, aim, weight) \
+                    if other.any() else None
+            return parent, self._guess_instead(x0, shift, aim, weight) if dropped and \
+                edge is None else edge, aim
         # one draw at a time (the paper's planner)
         cands = (self._edge(rng, x0, prediction, sigma, lam, z0)
                  for _ in range(s.control_samples))
@@ -335,4 +424,18 @@ class LearnedSteering:
                     traj_c[:, :n], traj_c[:, n : 2 * n])).max())
                 edge = Edge(traj_c, k + 1, float(traj_c[-1, 2 * n]), u_c, False, params_c,
                             cand.costate)
+        if self.cost_ratio and edge is not None and self.costly_edge(x0, shift, edge, aim):
+            self.costly[0] += 1
+            edge = self._guess_instead(x0, shift, aim, weight)
         return parent, edge, aim
+
+    def _guess_instead(self, x0: np.ndarray, shift: np.ndarray, aim: np.ndarray,
+                       weight: np.ndarray) -> Edge | None:
+        """When every draw was far dearer than J (`costly_edge`): U's guess itself if it
+        is not, else None, the learned functions rejecting the query (as V does)."""
+        edge = self.guess_edge(x0, aim, weight)
+        if edge is None or self.costly_edge(x0, shift, edge, aim):
+            self.propagator.rejected = "invalid_query"
+            return None
+        self.costly[1] += 1
+        return edge

@@ -68,6 +68,10 @@ class PlannerSettings:
     # aimed (`learned.LearnedSteering.refine`); 0 off
     refine_iterations: int = _default(PlanConfig, "refine_iterations")
     parent_cost_to_come: bool = _default(PlanConfig, "parent_cost_to_come")
+    # learned draws dearer than this multiple of J are passed over
+    # (`learned.LearnedSteering.propose`); 0 off; "data": from the data
+    # (`learned.data_cost_ratio`)
+    edge_cost_ratio: float | str = _default(PlanConfig, "edge_cost_ratio")
     # random controls (`controls`; when they switch on: `schedule`)
     control_edges: bool | None = _default(PlanConfig, "control_edges")
     # the goal connections (`connections`; when they switch on: `schedule`); connect_reach
