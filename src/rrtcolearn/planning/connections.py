@@ -54,8 +54,8 @@ def lqr_chain(propagator: Propagator, lqr: GoalLQR, x0: np.ndarray
     inputs, e.g. saturated, merged into one) if it reaches the goal region within
     ``funnel_duration``, and how the loop ended (`GoalLQR.run`)."""
     prob, s = propagator.problem, propagator.settings
-    out = lqr.run(x0, max(1, round(s.funnel_duration / s.dt)), propagator.box,
-                  propagator.goal_mask, prob.validity if prob.validity else None)
+    out, _ = lqr.cheapest(x0, max(1, round(s.funnel_duration / s.dt)), propagator.box,
+                          propagator.goal_mask, prob.validity if prob.validity else None)
     if not out.reached:
         return None, out.end
     us = out.inputs
@@ -75,7 +75,8 @@ def lqr_chain(propagator: Propagator, lqr: GoalLQR, x0: np.ndarray
 def goal_lqr(propagator: Propagator) -> GoalLQR | str:
     """The LQR controller about the goal's equilibrium, or why there is none
     (`lqr.build_goal_lqr`)."""
-    return build_goal_lqr(propagator.problem, propagator.settings.dt, propagator.input_weight)
+    return build_goal_lqr(propagator.problem, propagator.settings.dt, propagator.input_weight,
+                          propagator.settings.time_weight)
 
 
 class ShootingConnection:
@@ -307,6 +308,10 @@ class LQRConnection:
         # connection has started from it; `tries` counts the closed loops run
         self.value = np.full(256, np.inf)
         self.tried = np.zeros(256, dtype=bool)
+        # the cost-aware order: per node the cost to come plus `GoalLQR.cost_to_go`, and
+        # whether the loop has started from it in this order
+        self.priced = np.full(256, np.inf)
+        self.priced_tried = np.zeros(256, dtype=bool)
         self.queried = 0
         self.tries = 0
         # the least value from which the loop ran out of time (funnel_duration) without
@@ -325,9 +330,22 @@ class LQRConnection:
         m = tree.data.n_nodes
         self.value = grown(self.value, m, np.inf)
         self.tried = grown(self.tried, m, False)
+        self.priced = grown(self.priced, m, np.inf)
+        self.priced_tried = grown(self.priced_tried, m, False)
         if self.queried < m:
-            self.value[self.queried : m] = lqr.value(tree.data.states[self.queried : m])
+            new = np.arange(self.queried, m)
+            self.value[new] = lqr.value(tree.data.states[new])
+            self.priced[new] = tree.data.cost_to_come(new) + lqr.cost_to_go(
+                tree.data.states[new])
             self.queried = m
+        priced = np.where(self.priced_tried[:m], np.inf, self.priced[:m])
+        node = int(np.argmin(priced))
+        if np.isfinite(priced[node]):
+            self.priced_tried[node] = True
+            self.tries += 1
+            chain, _ = lqr_chain(self.propagator, lqr, tree.data.states[node])
+            if chain is not None:
+                return node, chain
         value = np.where(self.tried[:m], np.inf, self.value[:m])
         node = int(np.argmin(value))
         if not value[node] < self.ceiling:
