@@ -7,7 +7,7 @@ state between the loop's goal-biased iterations.
 - `FunnelConnection`: continuation along a funnel of extremals into the goal
   (`funnel.GoalFunnel`), then polished by shooting;
 - `LQRConnection`: the LQR closed loop about the goal's equilibrium (`lqr.GoalLQR`) as a chain
-  of constant-input edges.
+  of constant-input edges, the cheapest of its ladder of gains (`GoalLQR.cheapest`).
 
 `shoot_edge` and `lqr_chain` are also what the anytime shortcuts (`planning.improve`) use.
 When each connection is switched on is `planning.schedule`'s to say.
@@ -51,8 +51,10 @@ def shoot_edge(propagator: Propagator, x0: np.ndarray, params: np.ndarray, durat
 def lqr_chain(propagator: Propagator, lqr: GoalLQR, x0: np.ndarray
               ) -> tuple[list[Edge] | None, str]:
     """The LQR closed loop from ``x0`` as a chain of constant-input edges (consecutive equal
-    inputs, e.g. saturated, merged into one) if it reaches the goal region within
-    ``funnel_duration``, and how the loop ended (`GoalLQR.run`)."""
+    inputs, e.g. saturated, merged into one): the cheapest of the ladder's loops that reach
+    the goal region (`GoalLQR.cheapest`: Bryson's gain within ``funnel_duration``, the
+    gentler ones within their own horizons), and how the loop ended (Bryson's loop's end
+    when none reached)."""
     prob, s = propagator.problem, propagator.settings
     out, _ = lqr.cheapest(x0, max(1, round(s.funnel_duration / s.dt)), propagator.box,
                           propagator.goal_mask, prob.validity if prob.validity else None)
@@ -295,8 +297,13 @@ def _nearest_of(found: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray,
 
 
 class LQRConnection:
-    """The LQR closed loop from the untried node with the least Lyapunov value; off (never
-    connects, ``off`` says why) where the goal has no equilibrium or the loop is unstable."""
+    """The LQR closed loop (`GoalLQR.cheapest`: the cheapest chain of its ladder of gains)
+    from the untried node with the least Lyapunov value, and, on an `Allowance` of its own,
+    from the node with the least cost to come plus `GoalLQR.cost_to_go` (the root first: on
+    sparse_rrt's cart-pole the running cost's gain brings the start to the goal at 1.48x the
+    optimum where the least-V nodes, fast and near the goal, cost thousands of times it;
+    docs/external_problems.md); off (never connects, ``off`` says why) where the goal has no
+    equilibrium or the loop is unstable."""
 
     name = "lqr"
 
@@ -312,6 +319,7 @@ class LQRConnection:
         # whether the loop has started from it in this order
         self.priced = np.full(256, np.inf)
         self.priced_tried = np.zeros(256, dtype=bool)
+        self.priced_allowance = Allowance()  # its tries, ever rarer while they fail
         self.queried = 0
         self.tries = 0
         # the least value from which the loop ran out of time (funnel_duration) without
@@ -319,11 +327,14 @@ class LQRConnection:
         self.ceiling = np.inf
 
     def connect(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
-        """The LQR closed loop to the goal from the untried node with the least Lyapunov
-        value, as a chain of constant-input edges; (node, edges) or None when it does not
-        reach the goal region within ``funnel_duration``, leaves the constraints, meets an
-        obstacle or leaves the loop's basin (`GoalLQR.run`). Once a loop runs out of time,
-        only nodes with a lower value than its start are tried."""
+        """The LQR closed loop to the goal, as a chain of constant-input edges (`lqr_chain`),
+        first (when its allowance holds a try) from the untried node with the least cost to
+        come plus estimated cost to go, then from the untried node with the least Lyapunov
+        value; (node, edges) or None when neither reaches the goal region (within
+        ``funnel_duration``, or a gentler gain's horizon), or they leave the constraints,
+        meet an obstacle or leave the loop's basin (`GoalLQR.run`). Once a loop from the
+        least-value node runs out of time, only nodes with a lower value than its start are
+        tried in that order."""
         lqr = self.lqr
         if lqr is None:
             return None
@@ -340,7 +351,8 @@ class LQRConnection:
             self.queried = m
         priced = np.where(self.priced_tried[:m], np.inf, self.priced[:m])
         node = int(np.argmin(priced))
-        if np.isfinite(priced[node]):
+        self.priced_allowance.accrue()
+        if np.isfinite(priced[node]) and self.priced_allowance.take():
             self.priced_tried[node] = True
             self.tries += 1
             chain, _ = lqr_chain(self.propagator, lqr, tree.data.states[node])
