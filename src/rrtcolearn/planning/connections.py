@@ -48,18 +48,21 @@ def shoot_edge(propagator: Propagator, x0: np.ndarray, params: np.ndarray, durat
     return propagator.goal_extremal(x0, np.append(res.params, res.steps * s.dt), lam, z0)
 
 
-def lqr_chain(propagator: Propagator, lqr: GoalLQR, x0: np.ndarray
+def lqr_chain(propagator: Propagator, lqr: GoalLQR, x0: np.ndarray, gentle: bool = False
               ) -> tuple[list[Edge] | None, str]:
     """The LQR closed loop from ``x0`` as a chain of constant-input edges (consecutive equal
     inputs, e.g. saturated, merged into one): the cheapest of the ladder's loops that reach
     the goal region (`GoalLQR.cheapest`: Bryson's gain within ``funnel_duration``, the
     gentler ones within their own horizons), and how the loop ended (Bryson's loop's end
-    when none reached)."""
+    when none reached). ``gentle``: only a gentler gain's chain (None, "bryson", where
+    Bryson's is the cheapest)."""
     prob, s = propagator.problem, propagator.settings
-    out, _ = lqr.cheapest(x0, max(1, round(s.funnel_duration / s.dt)), propagator.box,
+    out, k = lqr.cheapest(x0, max(1, round(s.funnel_duration / s.dt)), propagator.box,
                           propagator.goal_mask, prob.validity if prob.validity else None)
     if not out.reached:
         return None, out.end
+    if gentle and k == 0:
+        return None, "bryson"
     us = out.inputs
     breaks = [0, *np.flatnonzero(np.any(us[1:] != us[:-1], axis=1)) + 1, len(us)]
     chain = []
@@ -298,11 +301,16 @@ def _nearest_of(found: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray,
 
 class LQRConnection:
     """The LQR closed loop (`GoalLQR.cheapest`: the cheapest chain of its ladder of gains)
-    from the untried node with the least Lyapunov value, and, on an `Allowance` of its own,
-    from the node with the least cost to come plus `GoalLQR.cost_to_go` (the root first: on
-    sparse_rrt's cart-pole the running cost's gain brings the start to the goal at 1.48x the
-    optimum where the least-V nodes, fast and near the goal, cost thousands of times it;
-    docs/external_problems.md); off (never connects, ``off`` says why) where the goal has no
+    from the untried node with the least Lyapunov value, and, where there is a ladder, on an
+    `Allowance` of its own, from the node with the least cost to come plus
+    `GoalLQR.cost_to_go` (the root first), there keeping only a gentler gain's chain.
+
+    Why: on sparse_rrt's cart-pole the running cost's gain brings the start to the goal at
+    1.48x the optimum where the least-V nodes, fast and near the goal, cost thousands of
+    times it. Only a gentler gain's chain: where Bryson's is the cheapest, the node is left
+    to the first order (on the quadrotor the start's Bryson chain, found first by every
+    restart, held the anytime paths at 1.66x against 1.04x; docs/external_problems.md). Off
+    (never connects, ``off`` says why) where the goal has no
     equilibrium or the loop is unstable."""
 
     name = "lqr"
@@ -352,10 +360,10 @@ class LQRConnection:
         priced = np.where(self.priced_tried[:m], np.inf, self.priced[:m])
         node = int(np.argmin(priced))
         self.priced_allowance.accrue()
-        if np.isfinite(priced[node]) and self.priced_allowance.take():
+        if lqr.gentler and np.isfinite(priced[node]) and self.priced_allowance.take():
             self.priced_tried[node] = True
             self.tries += 1
-            chain, _ = lqr_chain(self.propagator, lqr, tree.data.states[node])
+            chain, _ = lqr_chain(self.propagator, lqr, tree.data.states[node], gentle=True)
             if chain is not None:
                 return node, chain
         value = np.where(self.tried[:m], np.inf, self.value[:m])
