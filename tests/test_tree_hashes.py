@@ -29,10 +29,10 @@ from tests.tree_cases import CASES, fit_model, plan_case, summary, tree_hash
 # pendulum_auto and the cart-pole recorded again when the automatic funnel came to switch on
 # with shooting, small and growing (issue 31, docs/derived_settings.md): both now connect
 # through it at the iteration the connections switch on (pendulum_auto's shooting connected
-# 6 iterations later; the cart-pole's 600 iterations ended unsolved); pendulum_u1, quadrotor
-# and the sparse_rrt cart-pole recorded again (and the sparse_rrt acrobot's LQR tries, its
-# tree unchanged) when the LQR connection came to keep the cheapest chain of a ladder of
-# gentler gains and to try nodes by cost to come plus cost to go (issue 31, branch lqrcost,
+# 6 iterations later; the cart-pole's 600 iterations ended unsolved); the sparse_rrt
+# cart-pole recorded again (and the sparse_rrt acrobot's LQR tries, its tree unchanged) when
+# the LQR connection came to keep the cheapest chain of a ladder of gentler gains and to try
+# nodes by cost to come plus cost to go (issue 31, branch lqrcost,
 # docs/external_problems.md): the sparse_rrt cart-pole now connects from the root at its
 # first LQR try, by the running cost's gain
 EXPECTED = {
@@ -40,7 +40,7 @@ EXPECTED = {
     "pendulum_auto": ("eb7d406c5be4413d", {"connection": "funnel",
                                            "switched": {"lqr": 851, "shooting": 851,
                                                         "funnel": 851}}),
-    "pendulum_u1": ("6ffe5871d2966e0e", {"connection": "lqr",
+    "pendulum_u1": ("3319d1712788195c", {"connection": "lqr",
                                          "edges_by": {"learned": 204, "control": 888},
                                          "switched": {"controls": 30, "lqr": 548}}),
     "pendulum_u1_obstacle": ("c314f55558930e9e", {"edges_by": {"learned": 5, "control": 695},
@@ -49,8 +49,8 @@ EXPECTED = {
                                       "switched": {"lqr": 331, "shooting": 331,
                                                    "funnel": 331}}),
     "acrobot": ("a115ad656a07d5c3", {"nodes": 537}),
-    "quadrotor": ("54872191c16c364c", {"edges_by": {"learned": 26, "control": 190}}),
-    "sparse_rrt_cartpole": ("db9554ea0a8f4f2a", {"connection": "lqr", "lqr": {"tries": 1},
+    "quadrotor": ("1e659a65b522405d", {"edges_by": {"learned": 26, "control": 190}}),
+    "sparse_rrt_cartpole": ("b268565416c378da", {"connection": "lqr", "lqr": {"tries": 1},
                                                  "edges_by": {"learned": 47,
                                                               "control": 344}}),
     "sparse_rrt_acrobot": ("1bcb2e9e569edb9f", {"edges_by": {"learned": 65, "control": 1372},
