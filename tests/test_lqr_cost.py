@@ -1,5 +1,6 @@
 """The LQR connection's cost-aware ladder (planning/lqr.py: `ladder_weights`,
-`GoalLQR.cheapest`, `GoalLQR.cost_to_go`) on sparse_rrt's cart-pole (|F| <= 300, R = 1), against
+`GoalLQR.cheapest`, `GoalLQR.cost_to_go`; built with ``ladder=True``, not adopted by the
+planner) on sparse_rrt's cart-pole (|F| <= 300, R = 1), against
 independent references: sparse_rrt's equations by hand (tests/references.py), the RK4 step map
 linearised in closed form, the Riccati solutions by a structure-preserving doubling iteration
 written here (not scipy's Schur method), and the chain's cost summed here."""
@@ -40,7 +41,7 @@ def cart():
         sys.path.remove(str(ROOT))
     system = mod.make_cartpole()
     problem = PlanningProblem.create(system, mod.START, mod.GOAL, mod.GOAL_RADIUS)
-    lqr = build_goal_lqr(problem, DT, np.eye(1), W)
+    lqr = build_goal_lqr(problem, DT, np.eye(1), W, ladder=True)
     assert isinstance(lqr, GoalLQR), lqr
     return problem, lqr
 
@@ -73,6 +74,12 @@ def _reference():
         term = term @ (DT * Ac)
     half = np.array([30.0, 40.0, np.pi, 2.0])
     return x_e, A, B, np.diag(DT / half**2), np.array([DT / 300.0**2])
+
+
+def test_without_the_ladder_flag_there_are_no_gentler_gains(cart):
+    problem, _ = cart
+    plain = build_goal_lqr(problem, DT, np.eye(1), W)
+    assert isinstance(plain, GoalLQR) and plain.gentler == ()
 
 
 def test_the_ladder_runs_from_brysons_weight_to_the_running_costs():

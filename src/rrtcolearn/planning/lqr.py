@@ -39,8 +39,10 @@ for up to ``HORIZON_TIME_CONSTANTS`` of its closed loop's slowest time constant,
 longer than the cheapest reaching chain so far could pay for in time, w T) and keeps the
 cheapest chain that reaches the goal region. On the cart-pole's start (40 m, at rest) the
 running cost's gain reaches the goal in 65 s for 71.1, 1.48x the collocation optimum, where
-Bryson's loop times out. `GoalLQR.cost_to_go`, w e' P e with the running cost's P, orders the
-connection's cost-aware tries (`connections.LQRConnection`).
+Bryson's loop times out. `GoalLQR.cost_to_go`, w e' P e with the running cost's P, ordered
+the connection's cost-aware tries in the measured version (40991cd). Measured and not
+adopted (docs/external_problems.md, "The LQR connection's cost"): the planner builds the
+plain gain; ``build_goal_lqr(..., ladder=True)`` builds the ladder.
 
 Without finite input limits the input is not clipped (the plain LQR law) unless the problem
 truncates it (``u_max``: |u_j| <= u_max), which then is the box.
@@ -337,13 +339,14 @@ def ladder_weights(bryson_r: np.ndarray, cost_r: np.ndarray) -> list[np.ndarray]
 
 
 def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray | None = None,
-                   time_weight: float = 0.0) -> GoalLQR | str:
+                   time_weight: float = 0.0, ladder: bool = False) -> GoalLQR | str:
     """The LQR connection for ``problem`` at the planner's step ``dt``, or why there is none
     (a one-line reason). ``input_weight`` (m, m) is the running cost's R, the weight of
     inputs without finite limits (identity if not given), and with ``time_weight`` (w) what
     prices the chains `GoalLQR.cheapest` compares; the gentler gains' input weights are
-    `ladder_weights` from Bryson's to dt R's diagonal (an unstable or failed rung is left
-    out)."""
+    `ladder_weights` from Bryson's to dt R / w (an unstable or failed rung is left out),
+    solved only with ``ladder`` (the planner does not ask for it: not adopted,
+    docs/external_problems.md)."""
     sys = problem.system
     m = sys.n_inputs
     u_low, u_high = input_box(problem)
@@ -374,7 +377,7 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
     gentler = []
     # the running cost w + u'Ru/2 per unit of w: input weight dt R / w beside Bryson's Q
     per_w = time_weight if time_weight > 0 else 1.0
-    for r in ladder_weights(np.diag(R), dt * np.diag(cost_r) / per_w):
+    for r in ladder_weights(np.diag(R), dt * np.diag(cost_r) / per_w) if ladder else []:
         try:
             Kr, Pr = _riccati(A, B, Q, np.diag(r))
         except (ValueError, np.linalg.LinAlgError):
