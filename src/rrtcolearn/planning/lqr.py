@@ -28,6 +28,22 @@ What, for any `System` (nothing here depends on the system's name or on one quer
   the Lyapunov value (x - x_e)' P (x - x_e) exceeds its value at the start (the state is not
   in the saturated loop's basin: aborting there keeps failed tries cheap).
 
+The cost-aware ladder (`GoalLQR.cheapest`, issue 31). Bryson's R prices an input by its box:
+where the running cost w + u^T R u / 2 prices it far dearer (sparse_rrt's cart-pole: |F| <= 300,
+R = 1, 9e4 times Bryson's weight), the loop spends the whole box to settle fast and its chain
+costs thousands of times what a slower motion would. So `build_goal_lqr` also solves the
+Riccati equation for gentler input weights, geometrically from Bryson's R towards dt R / w
+(the running cost's, in rungs of at most ``LADDER_STEP``; inputs the running cost prices no
+dearer stay), and `GoalLQR.cheapest` runs each (Bryson's for ``max_steps``, each gentler one
+for up to ``HORIZON_TIME_CONSTANTS`` of its closed loop's slowest time constant, never
+longer than the cheapest reaching chain so far could pay for in time, w T) and keeps the
+cheapest chain that reaches the goal region. On the cart-pole's start (40 m, at rest) the
+running cost's gain reaches the goal in 65 s for 71.1, 1.48x the collocation optimum, where
+Bryson's loop times out. `GoalLQR.cost_to_go`, w e' P e with the running cost's P, ordered
+the connection's cost-aware tries in the measured version (40991cd). Measured and not
+adopted (docs/external_problems.md, "The LQR connection's cost"): the planner builds the
+plain gain; ``build_goal_lqr(..., ladder=True)`` builds the ladder.
+
 Without finite input limits the input is not clipped (the plain LQR law) unless the problem
 truncates it (``u_max``: |u_j| <= u_max), which then is the box.
 
@@ -45,9 +61,14 @@ import numpy as np
 from rrtcolearn.integrate import propagate
 from rrtcolearn.planning.problem import PlanningProblem
 
-__all__ = ["GoalLQR", "LQRTry", "build_goal_lqr", "equilibrium", "step_jacobians"]
+__all__ = ["Gain", "GoalLQR", "LQRTry", "build_goal_lqr", "equilibrium", "step_jacobians"]
 
 _GN_ITERATIONS = 30
+# the gentler gains' horizon: this many of the closed loop's slowest time constants (the
+# slowest mode's offset falls to e^-4, 2%, of its start)
+HORIZON_TIME_CONSTANTS = 4.0
+# the ladder's rungs: the input weight grows by at most this factor from one to the next
+LADDER_STEP = 10.0
 _EQ_TOL = 1e-9  # |f(x_e, u_e)| relative to 1 + |f(goal, u_0)|
 _FD_STEP = 1e-6  # central differences, relative to 1 + |value|
 
@@ -121,6 +142,21 @@ class LQRTry:
 
 
 @dataclass(frozen=True)
+class Gain:
+    """One LQR gain about the goal's equilibrium: K (m, n), the Riccati solution P (n, n),
+    the closed loop's spectral radius and the input weight R (m,) it was solved with."""
+
+    K: np.ndarray
+    P: np.ndarray
+    spectral_radius: float
+    input_weight: np.ndarray
+
+    def time_constant(self, dt: float) -> float:
+        """The closed loop's slowest time constant, -dt / ln(spectral radius) (s)."""
+        return -dt / float(np.log(self.spectral_radius)) if self.spectral_radius > 0 else dt
+
+
+@dataclass(frozen=True)
 class GoalLQR:
     """The LQR feedback about the goal's equilibrium (`build_goal_lqr` makes it).
 
@@ -138,6 +174,11 @@ class GoalLQR:
     u_low: np.ndarray
     u_high: np.ndarray
     spectral_radius: float
+    # the cost-aware ladder (`cheapest`): gains with gentler input weights, Bryson's towards
+    # the running cost's, and the running cost's w and R (m, m) that price their chains
+    gentler: tuple[Gain, ...] = ()
+    time_weight: float = 0.0
+    cost_weight: np.ndarray | None = None
 
     def offset(self, x: np.ndarray) -> np.ndarray:
         """(N, n) x - x_e, angle coordinates as the goal test compares them (modulo a turn
@@ -154,10 +195,11 @@ class GoalLQR:
         return np.einsum("ij,jk,ik->i", e, self.P, e)
 
     def run(self, x0: np.ndarray, max_steps: int, box: tuple[np.ndarray, np.ndarray],
-            goal_mask, validity=None) -> LQRTry:
+            goal_mask, validity=None, gain: Gain | None = None) -> LQRTry:
         """The closed loop from ``x0``: u = clip(u_e - K (x - x_e)) held for each RK4 step,
         until a state is in the goal region (``goal_mask``: states (N, n) -> (N,) bool, the
-        planner's goal test), for at most ``max_steps`` steps. It stops unreached at a state
+        planner's goal test), for at most ``max_steps`` steps; ``gain``: one of `gentler`
+        instead of (K, P). It stops unreached at a state
         outside ``box`` (the constraint box, +-inf where free) or not finite (that state
         dropped), once the Lyapunov value exceeds its start value, and at a state that
         ``validity`` (the obstacle checker: states -> (N,) bool) rejects. The loop runs
@@ -167,8 +209,9 @@ class GoalLQR:
         low, high = box
         wrap = np.zeros(x0.size, bool)
         wrap[list(self.problem.goal_angles)] = True
-        args = (np.ascontiguousarray(x0, dtype=np.float64), self.x_e, self.u_e, self.K,
-                self.P, self.u_low, self.u_high, wrap, float(self.dt), int(max_steps),
+        K, P = (self.K, self.P) if gain is None else (gain.K, gain.P)
+        args = (np.ascontiguousarray(x0, dtype=np.float64), self.x_e, self.u_e, K,
+                P, self.u_low, self.u_high, wrap, float(self.dt), int(max_steps),
                 low, high)
         states, inputs, how = sys.closed_loop_jit(*args) if sys.closed_loop_jit is not None \
             else _closed_loop(sys, *args)
@@ -179,6 +222,45 @@ class GoalLQR:
         if hits.size:
             return LQRTry(states[: end + 1], inputs[:end], "reached")
         return LQRTry(states, inputs, ("timeout", "box", "basin")[how])
+
+    def cost_to_go(self, x: np.ndarray) -> np.ndarray:
+        """(N,) an estimate of the running cost from states (N, n) to the goal: w (x - x_e)'
+        P (x - x_e) with the P of the gentlest gain (the last of `gentler`, else (K, P)),
+        the LQR cost whose input weight is the running cost's (per unit of w)."""
+        P = self.gentler[-1].P if self.gentler else self.P
+        e = self.offset(x)
+        w = self.time_weight if self.time_weight > 0 else 1.0
+        return w * np.einsum("ij,jk,ik->i", e, P, e)
+
+    def chain_cost(self, inputs: np.ndarray) -> float:
+        """The running cost of holding ``inputs`` (k, m) for a step each: the sum of
+        dt (w + u^T R u / 2) (what the planner's edges cost)."""
+        R = np.eye(self.u_e.size) if self.cost_weight is None else self.cost_weight
+        effort = 0.5 * np.einsum("ki,ij,kj->k", inputs, R, inputs)
+        return float(np.sum(self.dt * (self.time_weight + effort)))
+
+    def cheapest(self, x0: np.ndarray, max_steps: int, box: tuple[np.ndarray, np.ndarray],
+                 goal_mask, validity=None) -> tuple[LQRTry, int]:
+        """The cheapest closed loop from ``x0`` that reaches the goal region among the gain
+        (K, P) run for ``max_steps`` steps and each of `gentler` run for at least as long
+        and up to ``HORIZON_TIME_CONSTANTS`` of its slowest time constant, but never longer
+        than the cheapest reaching loop so far could pay for in time alone (w T); ties go
+        to the earlier, more aggressive gain. (the loop, its gain: 0 for (K, P), k for
+        ``gentler[k - 1]``); unreached, the (K, P) loop's outcome."""
+        first = self.run(x0, max_steps, box, goal_mask, validity)
+        best, best_k = first, 0
+        cost = self.chain_cost(first.inputs) if first.reached else np.inf
+        for k, gain in enumerate(self.gentler, 1):
+            steps = max(max_steps, int(np.ceil(HORIZON_TIME_CONSTANTS
+                                               * gain.time_constant(self.dt) / self.dt)))
+            if self.time_weight > 0 and np.isfinite(cost):
+                steps = min(steps, int(cost / (self.time_weight * self.dt)))
+            if steps < 1:
+                break
+            out = self.run(x0, steps, box, goal_mask, validity, gain)
+            if out.reached and (c := self.chain_cost(out.inputs)) < cost:
+                best, best_k, cost = out, k, c
+        return best, best_k
 
 
 _NO_HITS = np.empty(0, np.int64)
@@ -232,11 +314,39 @@ def bryson_weights(problem: PlanningProblem, dt: float, r_cost: np.ndarray
     return np.diag(dt / half_x**2), np.diag(dt * r_diag)
 
 
-def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray | None = None
-                   ) -> GoalLQR | str:
+def _riccati(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(K, P): the discrete Riccati solution P for (A, B, Q, R) and its gain."""
+    from scipy.linalg import solve_discrete_are  # (on first use)
+
+    with np.errstate(all="ignore"):
+        P = solve_discrete_are(A, B, Q, R)
+        K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+    return K, P
+
+
+def ladder_weights(bryson_r: np.ndarray, cost_r: np.ndarray) -> list[np.ndarray]:
+    """The gentler gains' input weights (each (m,)): from Bryson's ``bryson_r`` (m,) towards
+    the running cost's ``cost_r`` (m,) (both at the step dt), geometrically, in rungs that
+    grow by at most ``LADDER_STEP``, the last the running cost's; only inputs the running
+    cost prices dearer than Bryson's rule move. Empty where none does."""
+    end = np.maximum(bryson_r, cost_r)
+    ratio = float(np.max(end / bryson_r))
+    if not (np.isfinite(ratio) and ratio > 1.0):
+        return []
+    rungs = int(np.ceil(np.log(ratio) / np.log(LADDER_STEP) - 1e-9))
+    return [bryson_r * (end / bryson_r) ** (k / rungs) for k in range(1, rungs + 1)]
+
+
+def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray | None = None,
+                   time_weight: float = 0.0, ladder: bool = False) -> GoalLQR | str:
     """The LQR connection for ``problem`` at the planner's step ``dt``, or why there is none
     (a one-line reason). ``input_weight`` (m, m) is the running cost's R, the weight of
-    inputs without finite limits (identity if not given)."""
+    inputs without finite limits (identity if not given), and with ``time_weight`` (w) what
+    prices the chains `GoalLQR.cheapest` compares; the gentler gains' input weights are
+    `ladder_weights` from Bryson's to dt R / w (an unstable or failed rung is left out),
+    solved only with ``ladder`` (the planner does not ask for it: not adopted,
+    docs/external_problems.md)."""
     sys = problem.system
     m = sys.n_inputs
     u_low, u_high = input_box(problem)
@@ -253,14 +363,10 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
         A, B = step_jacobians(sys, x_e, u_e, dt)
     if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
         return "the linearisation at the equilibrium is not finite"
-    Q, R = bryson_weights(problem, dt, np.diag(np.eye(m) if input_weight is None
-                                               else input_weight))
+    cost_r = np.eye(m) if input_weight is None else np.asarray(input_weight, dtype=float)
+    Q, R = bryson_weights(problem, dt, np.diag(cost_r))
     try:
-        with np.errstate(all="ignore"):
-            from scipy.linalg import solve_discrete_are  # (on first use)
-
-            P = solve_discrete_are(A, B, Q, R)
-            K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+        K, P = _riccati(A, B, Q, R)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return f"no LQR solution at the equilibrium ({exc})"
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(K))):
@@ -268,4 +374,18 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
     rho = float(np.abs(np.linalg.eigvals(A - B @ K)).max())
     if not rho < 1.0:
         return f"the LQR closed loop is unstable (spectral radius {rho:.4g})"
-    return GoalLQR(problem, float(dt), x_e, u_e, K, 0.5 * (P + P.T), u_low, u_high, rho)
+    gentler = []
+    # the running cost w + u'Ru/2 per unit of w: input weight dt R / w beside Bryson's Q
+    per_w = time_weight if time_weight > 0 else 1.0
+    for r in ladder_weights(np.diag(R), dt * np.diag(cost_r) / per_w) if ladder else []:
+        try:
+            Kr, Pr = _riccati(A, B, Q, np.diag(r))
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        if not (np.all(np.isfinite(Pr)) and np.all(np.isfinite(Kr))):
+            continue
+        rho_r = float(np.abs(np.linalg.eigvals(A - B @ Kr)).max())
+        if rho_r < 1.0:
+            gentler.append(Gain(Kr, 0.5 * (Pr + Pr.T), rho_r, r))
+    return GoalLQR(problem, float(dt), x_e, u_e, K, 0.5 * (P + P.T), u_low, u_high, rho,
+                   tuple(gentler), float(time_weight), cost_r)
