@@ -18,6 +18,7 @@ import pytest
 from tests import references as ref
 
 from rrtcolearn.planning.lqr import (
+    HOLD_FRACTION,
     HORIZON_TIME_CONSTANTS,
     LADDER_STEP,
     GoalLQR,
@@ -123,6 +124,35 @@ def test_the_gentler_gains_solve_their_riccati_equations(cart):
                                rtol=1e-5)
 
 
+def _held_reference(A, B, Q, r, hold):
+    """(K, P) of the weights (Q, diag r) with the input held for ``hold`` steps: the
+    sampled system's step map (A^hold, sum_i<hold A^i B) and weights hold Q, hold R, by the
+    doubling solver."""
+    Ah = np.linalg.matrix_power(A, hold)
+    Bh = sum(np.linalg.matrix_power(A, i) @ B for i in range(hold))
+    R = hold * np.diag(r)
+    P = _doubling_dare(Ah, Bh, hold * Q, R)
+    return np.linalg.solve(R + Bh.T @ P @ Bh, Bh.T @ P @ Ah), P
+
+
+def test_the_gentler_gains_hold_their_input_for_half_their_fastest_time_constant(cart):
+    """Each rung's held gain: its hold is HOLD_FRACTION of the dt-designed closed loop's
+    fastest time constant (from its eigenvalues, computed here), in whole steps, and its K
+    and P solve the Riccati equation of the sampled system at that hold."""
+    _, lqr = cart
+    _, A, B, Q, r_bryson = _reference()
+    for gain in lqr.gentler:
+        R = np.diag(gain.input_weight)
+        P = _doubling_dare(A, B, Q, R)
+        K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+        fastest = -DT / np.log(np.abs(np.linalg.eigvals(A - B @ K)).min())
+        hold = int(HOLD_FRACTION * fastest / DT)
+        assert hold > 1 and gain.held is not None and gain.held.hold == hold
+        Kh, Ph = _held_reference(A, B, Q, gain.input_weight, hold)
+        np.testing.assert_allclose(gain.held.K, Kh, rtol=1e-5, atol=1e-7 * np.abs(Kh).max())
+        np.testing.assert_allclose(gain.held.P, Ph, rtol=1e-5, atol=1e-7 * np.abs(Ph).max())
+
+
 def test_from_the_start_the_cheapest_chain_is_a_gentle_gains_and_under_2x(cart):
     """From the query's start (40 m from the goal, at rest) Bryson's loop does not reach the
     goal ball within 3 s; the cheapest chain of the ladder does, and it is the closed loop
@@ -140,15 +170,20 @@ def test_from_the_start_the_cheapest_chain_is_a_gentle_gains_and_under_2x(cart):
     out, k = lqr.cheapest(start, 300, box, in_goal)
     assert out.reached and k >= 1
     gain = lqr.gentler[k - 1]
-    R = np.diag(gain.input_weight)
-    P = _doubling_dare(A, B, Q, R)
-    K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+    K, _ = _held_reference(A, B, Q, gain.input_weight, gain.held.hold)
     for i, u in enumerate(out.inputs):
-        e = out.states[i] - x_e
-        want = np.clip(-K @ e, -300.0, 300.0)
-        np.testing.assert_allclose(u, want, rtol=0, atol=1e-5 * (np.abs(K) @ np.abs(e)).max())
+        if i % gain.held.hold == 0:  # recomputed at the start of each hold, else held
+            e = out.states[i] - x_e
+            want = np.clip(-K @ e, -300.0, 300.0)
+            np.testing.assert_allclose(u, want, rtol=0,
+                                       atol=1e-5 * (np.abs(K) @ np.abs(e)).max())
+        else:
+            assert np.array_equal(u, out.inputs[i - 1])
         step = ref.hold(ref.sparse_rrt_cartpole, out.states[i], u, DT, 1)[-1]
         np.testing.assert_allclose(out.states[i + 1], step, rtol=1e-9, atol=1e-9)
+    # one input per hold: the chain is some hundreds of edges, not one per RK4 step
+    changes = 1 + np.count_nonzero(np.any(out.inputs[1:] != out.inputs[:-1], axis=1))
+    assert changes <= math.ceil(len(out.inputs) / gain.held.hold)
     assert np.linalg.norm(out.states[-1] - np.asarray(problem.goal)) <= problem.goal_tolerance
     cost = float(np.sum(DT * (W + 0.5 * out.inputs[:, 0] ** 2)))
     assert lqr.chain_cost(out.inputs) == pytest.approx(cost, rel=1e-12)
@@ -157,6 +192,6 @@ def test_from_the_start_the_cheapest_chain_is_a_gentle_gains_and_under_2x(cart):
     for j, other in enumerate(lqr.gentler, 1):
         steps = min(int(cost / (W * DT)), max(300, math.ceil(
             HORIZON_TIME_CONSTANTS * other.time_constant(DT) / DT)))
-        run = lqr.run(start, steps, box, in_goal, gain=other)
+        run = lqr.run(start, steps, box, in_goal, gain=other.held or other)
         if j != k and run.reached:
             assert cost <= float(np.sum(DT * (W + 0.5 * run.inputs[:, 0] ** 2)))
