@@ -140,7 +140,7 @@ def test_the_gentler_gains_hold_their_input_for_half_their_fastest_time_constant
     fastest time constant (from its eigenvalues, computed here), in whole steps, and its K
     and P solve the Riccati equation of the sampled system at that hold."""
     _, lqr = cart
-    _, A, B, Q, r_bryson = _reference()
+    _, A, B, Q, _ = _reference()
     for gain in lqr.gentler:
         R = np.diag(gain.input_weight)
         P = _doubling_dare(A, B, Q, R)
