@@ -182,8 +182,16 @@ def test_from_the_start_the_cheapest_chain_is_a_gentle_gains_and_under_2x(cart):
         step = ref.hold(ref.sparse_rrt_cartpole, out.states[i], u, DT, 1)[-1]
         np.testing.assert_allclose(out.states[i + 1], step, rtol=1e-9, atol=1e-9)
     # one input per hold: the chain is some hundreds of edges, not one per RK4 step
-    changes = 1 + np.count_nonzero(np.any(out.inputs[1:] != out.inputs[:-1], axis=1))
-    assert changes <= math.ceil(len(out.inputs) / gain.held.hold)
+    breaks = [0, *np.flatnonzero(np.any(out.inputs[1:] != out.inputs[:-1], axis=1)) + 1,
+              len(out.inputs)]
+    assert len(breaks) - 1 <= math.ceil(len(out.inputs) / gain.held.hold)
+    # each such edge, re-simulated in one call from its start as the plan checks do, gives
+    # its states bit for bit
+    from rrtcolearn.integrate import propagate
+
+    for a, b in pairwise(breaks):
+        again = propagate(problem.system, out.states[a], out.inputs[a], DT, b - a)
+        assert np.array_equal(again, out.states[a : b + 1])
     assert np.linalg.norm(out.states[-1] - np.asarray(problem.goal)) <= problem.goal_tolerance
     cost = float(np.sum(DT * (W + 0.5 * out.inputs[:, 0] ** 2)))
     assert lqr.chain_cost(out.inputs) == pytest.approx(cost, rel=1e-12)
