@@ -32,7 +32,7 @@ from rrtcolearn.planning.shooting import shoot
 
 # the LQR connection's ladder of gentler gains and its cost-aware tries (`LQRConnection`,
 # `lqr.build_goal_lqr`'s ``ladder``; docs/external_problems.md, "The LQR connection's cost")
-LQR_LADDER = False
+LQR_LADDER = True
 
 FUNNEL_POINTS = 3  # funnel states tried per node (each on its own extremal, nearest first)
 FUNNEL_STRETCH = 1.5  # a funnel connection may last this times the funnel's duration
