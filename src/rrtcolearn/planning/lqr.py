@@ -40,12 +40,14 @@ longer than the cheapest reaching chain so far could pay for in time, w T) and k
 cheapest chain that reaches the goal region. On the cart-pole's start (40 m, at rest) the
 running cost's gain reaches the goal in 65 s for 71.1, 1.48x the collocation optimum, where
 Bryson's loop times out. `GoalLQR.cost_to_go`, w e' P e with the running cost's P, ordered
-the connection's cost-aware tries in the measured version (40991cd). Measured and not
-adopted (docs/external_problems.md, "The LQR connection's cost"): the planner builds the
-plain gain; ``build_goal_lqr(..., ladder=True)`` builds the ladder (`connections.LQR_LADDER`
-switches it on in the planner). Each rung also has a held version (`held_gain`: its input
-held for ``HOLD_FRACTION`` of its fastest time constant), which `cheapest` runs for the rung
-it chooses, so the chain has one edge per hold (260 instead of 6 487 on the cart-pole).
+the connection's cost-aware tries. Not adopted at first (40991cd: 2.5x the CPU to the
+first solution, anytime budgets overrun), adopted with held inputs and a bounded interior
+search (docs/external_problems.md, "The LQR connection's cost" and its follow-up):
+``build_goal_lqr(..., ladder=True)`` builds the ladder, and the planner asks for it while
+`connections.LQR_LADDER` is on (the default). Each rung also has a held version
+(`held_gain`: its input held for ``HOLD_FRACTION`` of its fastest time constant), which
+`cheapest` runs for the rung it chooses, so the chain has one edge per hold (260 instead
+of 6 487 on the cart-pole).
 
 Without finite input limits the input is not clipped (the plain LQR law) unless the problem
 truncates it (``u_max``: |u_j| <= u_max), which then is the box.
@@ -448,8 +450,8 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
     inputs without finite limits (identity if not given), and with ``time_weight`` (w) what
     prices the chains `GoalLQR.cheapest` compares; the gentler gains' input weights are
     `ladder_weights` from Bryson's to dt R / w (an unstable or failed rung is left out),
-    solved only with ``ladder`` (the planner does not ask for it: not adopted,
-    docs/external_problems.md)."""
+    solved only with ``ladder`` (the planner's LQR connection asks for it while
+    `connections.LQR_LADDER` is on; docs/external_problems.md)."""
     sys = problem.system
     m = sys.n_inputs
     u_low, u_high = input_box(problem)
