@@ -1,9 +1,10 @@
 """The LQR connection's cost-aware ladder (planning/lqr.py: `ladder_weights`,
 `GoalLQR.cheapest`, `GoalLQR.cost_to_go`, `held_gain`; built with ``ladder=True``, as the
-planner does while ``connections.LQR_LADDER`` is on) on sparse_rrt's cart-pole (|F| <= 300,
-R = 1), against independent references: sparse_rrt's equations by hand
-(tests/references.py), the RK4 step map linearised in closed form, the Riccati solutions by a structure-preserving doubling iteration
-written here (not scipy's Schur method), and the chain's cost summed here."""
+planner does only while ``connections.LQR_LADDER`` is on, off by default) on sparse_rrt's
+cart-pole (|F| <= 300, R = 1), against independent references: sparse_rrt's equations by
+hand (tests/references.py), the RK4 step map linearised in closed form, the Riccati
+solutions by a structure-preserving doubling iteration written here (not scipy's Schur
+method), and the chain's cost summed here."""
 
 from __future__ import annotations
 

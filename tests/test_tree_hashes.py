@@ -51,11 +51,11 @@ EXPECTED = {
                                                    "funnel": 331}}),
     "acrobot": ("a115ad656a07d5c3", {"nodes": 537}),
     "quadrotor": ("1e659a65b522405d", {"edges_by": {"learned": 26, "control": 190}}),
-    "sparse_rrt_cartpole": ("6b75c1090b489e8d", {"connection": "lqr", "lqr": {"tries": 1},
+    "sparse_rrt_cartpole": ("efdf9a17f120a861", {"connection": "lqr", "lqr": {"tries": 11},
                                                  "edges_by": {"learned": 47,
-                                                              "control": 344}}),
+                                                              "control": 778}}),
     "sparse_rrt_acrobot": ("1bcb2e9e569edb9f", {"edges_by": {"learned": 65, "control": 1372},
-                                                "lqr": {"tries": 31}}),
+                                                "lqr": {"tries": 25}}),
 }
 
 

@@ -40,11 +40,12 @@ longer than the cheapest reaching chain so far could pay for in time, w T) and k
 cheapest chain that reaches the goal region. On the cart-pole's start (40 m, at rest) the
 running cost's gain reaches the goal in 65 s for 71.1, 1.48x the collocation optimum, where
 Bryson's loop times out. `GoalLQR.cost_to_go`, w e' P e with the running cost's P, ordered
-the connection's cost-aware tries. Not adopted at first (40991cd: 2.5x the CPU to the
-first solution, anytime budgets overrun), adopted with held inputs and a bounded interior
-search (docs/external_problems.md, "The LQR connection's cost" and its follow-up):
-``build_goal_lqr(..., ladder=True)`` builds the ladder, and the planner asks for it while
-`connections.LQR_LADDER` is on (the default). Each rung also has a held version
+the connection's cost-aware tries. Not adopted (docs/external_problems.md, "The LQR
+connection's cost" and its follow-up: 40991cd took 2.5x the CPU to the first solution and
+overran anytime budgets; with held inputs and a bounded interior search the CPU is within
+1.1x, but the shipped cart-pole's swing-up no longer replays open-loop):
+``build_goal_lqr(..., ladder=True)`` builds the ladder, and the planner asks for it only
+while `connections.LQR_LADDER` is on (off by default). Each rung also has a held version
 (`held_gain`: its input held for ``HOLD_FRACTION`` of its fastest time constant), which
 `cheapest` runs for the rung it chooses, so the chain has one edge per hold (260 instead
 of 6 487 on the cart-pole).
@@ -450,8 +451,8 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
     inputs without finite limits (identity if not given), and with ``time_weight`` (w) what
     prices the chains `GoalLQR.cheapest` compares; the gentler gains' input weights are
     `ladder_weights` from Bryson's to dt R / w (an unstable or failed rung is left out),
-    solved only with ``ladder`` (the planner's LQR connection asks for it while
-    `connections.LQR_LADDER` is on; docs/external_problems.md)."""
+    solved only with ``ladder`` (the planner's LQR connection asks for it only while
+    `connections.LQR_LADDER` is on, off by default; docs/external_problems.md)."""
     sys = problem.system
     m = sys.n_inputs
     u_low, u_high = input_box(problem)
