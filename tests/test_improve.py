@@ -185,3 +185,57 @@ def test_landed_shortcuts_resimulate_and_keep_the_tree(paper_model, u_max):
             assert again.to_dict()["path"] == q.to_dict()["path"]
             assert again.extra["landed"] == q.extra["landed"]
     assert kept is not None
+
+
+class _CountingModel:
+    """A model that counts the stretches it is asked about (rows of its queries)."""
+
+    def __init__(self, model):
+        self.model, self.rows, self.calls = model, 0, 0
+
+    def query(self, X):
+        self.rows += len(X)
+        self.calls += 1
+        return self.model.query(X)
+
+
+def _long_path(planner, plan, edges):
+    """``plan`` with its path replaced by a chain of ``edges`` one-step held inputs from the
+    root (an LQR chain's shape), added to its tree."""
+    from dataclasses import replace
+
+    from rrtcolearn.integrate import propagate_draws
+    from rrtcolearn.planning.contracts import Edge, add_edge
+
+    tree, path, dt = plan.tree, [0], planner.settings.dt
+    u = np.array([0.5])
+    for _ in range(edges):
+        x = tree.states[path[-1]]
+        flat = propagate_draws(planner.problem.system, x, u[None], np.array([1]), dt,
+                               *planner.propagator.box)[0]
+        edge = Edge(np.vstack([x[None], flat[:1]]), 1, dt * (1.0 + 0.125), 0.5, False,
+                    control=u.copy())
+        path.append(add_edge(tree, path[-1], edge, dt))
+    return replace(plan, path_nodes=path)
+
+
+def test_a_long_paths_pairwise_search_obeys_stop(paper_model):
+    """On a path of 3 000 edges the interior search asks the model about one block of
+    stretches, then stops when ``stop()`` turns true (no stretch tried); without a stop it
+    asks about pairs of at most PAIR_NODES evenly spaced nodes, not all 4.5 million."""
+    from rrtcolearn.planning import improve
+
+    planner = swingup_planner(paper_model)
+    counting = _CountingModel(planner.model)
+    planner.model = counting
+    p = _long_path(planner, first_solution(planner, 3), 3000)
+    q = improve.interior_shortcuts(planner, p, stop=lambda: counting.calls > 0)
+    assert counting.calls == 1 and counting.rows == improve.PAIR_BLOCK
+    assert q.extra["interior"]["stretches"] == 0 and q.path_nodes == p.path_nodes
+    counting.rows = counting.calls = 0
+    come = np.concatenate([[0.0], np.cumsum(p.tree.costs[p.path_nodes[1:]])])
+    improve._pairs(planner, p.tree, p.path_nodes, come, set())
+    pairs = improve.PAIR_NODES * (improve.PAIR_NODES - 1) // 2
+    assert 0 < counting.rows <= pairs and counting.calls == -(-counting.rows // improve.PAIR_BLOCK)
+    assert improve._stations(3000).size == improve.PAIR_NODES
+    assert np.array_equal(improve._stations(40), np.arange(40))

@@ -1,9 +1,10 @@
 """The LQR connection's cost-aware ladder (planning/lqr.py: `ladder_weights`,
-`GoalLQR.cheapest`, `GoalLQR.cost_to_go`; built with ``ladder=True``, not adopted by the
-planner) on sparse_rrt's cart-pole (|F| <= 300, R = 1), against
-independent references: sparse_rrt's equations by hand (tests/references.py), the RK4 step map
-linearised in closed form, the Riccati solutions by a structure-preserving doubling iteration
-written here (not scipy's Schur method), and the chain's cost summed here."""
+`GoalLQR.cheapest`, `GoalLQR.cost_to_go`, `held_gain`; built with ``ladder=True``, as the
+planner does only while ``connections.LQR_LADDER`` is on, off by default) on sparse_rrt's
+cart-pole (|F| <= 300, R = 1), against independent references: sparse_rrt's equations by
+hand (tests/references.py), the RK4 step map linearised in closed form, the Riccati
+solutions by a structure-preserving doubling iteration written here (not scipy's Schur
+method), and the chain's cost summed here."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import pytest
 from tests import references as ref
 
 from rrtcolearn.planning.lqr import (
+    HOLD_FRACTION,
     HORIZON_TIME_CONSTANTS,
     LADDER_STEP,
     GoalLQR,
@@ -123,6 +125,35 @@ def test_the_gentler_gains_solve_their_riccati_equations(cart):
                                rtol=1e-5)
 
 
+def _held_reference(A, B, Q, r, hold):
+    """(K, P) of the weights (Q, diag r) with the input held for ``hold`` steps: the
+    sampled system's step map (A^hold, sum_i<hold A^i B) and weights hold Q, hold R, by the
+    doubling solver."""
+    Ah = np.linalg.matrix_power(A, hold)
+    Bh = sum(np.linalg.matrix_power(A, i) @ B for i in range(hold))
+    R = hold * np.diag(r)
+    P = _doubling_dare(Ah, Bh, hold * Q, R)
+    return np.linalg.solve(R + Bh.T @ P @ Bh, Bh.T @ P @ Ah), P
+
+
+def test_the_gentler_gains_hold_their_input_for_half_their_fastest_time_constant(cart):
+    """Each rung's held gain: its hold is HOLD_FRACTION of the dt-designed closed loop's
+    fastest time constant (from its eigenvalues, computed here), in whole steps, and its K
+    and P solve the Riccati equation of the sampled system at that hold."""
+    _, lqr = cart
+    _, A, B, Q, _ = _reference()
+    for gain in lqr.gentler:
+        R = np.diag(gain.input_weight)
+        P = _doubling_dare(A, B, Q, R)
+        K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+        fastest = -DT / np.log(np.abs(np.linalg.eigvals(A - B @ K)).min())
+        hold = int(HOLD_FRACTION * fastest / DT)
+        assert hold > 1 and gain.held is not None and gain.held.hold == hold
+        Kh, Ph = _held_reference(A, B, Q, gain.input_weight, hold)
+        np.testing.assert_allclose(gain.held.K, Kh, rtol=1e-5, atol=1e-7 * np.abs(Kh).max())
+        np.testing.assert_allclose(gain.held.P, Ph, rtol=1e-5, atol=1e-7 * np.abs(Ph).max())
+
+
 def test_from_the_start_the_cheapest_chain_is_a_gentle_gains_and_under_2x(cart):
     """From the query's start (40 m from the goal, at rest) Bryson's loop does not reach the
     goal ball within 3 s; the cheapest chain of the ladder does, and it is the closed loop
@@ -140,15 +171,28 @@ def test_from_the_start_the_cheapest_chain_is_a_gentle_gains_and_under_2x(cart):
     out, k = lqr.cheapest(start, 300, box, in_goal)
     assert out.reached and k >= 1
     gain = lqr.gentler[k - 1]
-    R = np.diag(gain.input_weight)
-    P = _doubling_dare(A, B, Q, R)
-    K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+    K, _ = _held_reference(A, B, Q, gain.input_weight, gain.held.hold)
     for i, u in enumerate(out.inputs):
-        e = out.states[i] - x_e
-        want = np.clip(-K @ e, -300.0, 300.0)
-        np.testing.assert_allclose(u, want, rtol=0, atol=1e-5 * (np.abs(K) @ np.abs(e)).max())
+        if i % gain.held.hold == 0:  # recomputed at the start of each hold, else held
+            e = out.states[i] - x_e
+            want = np.clip(-K @ e, -300.0, 300.0)
+            np.testing.assert_allclose(u, want, rtol=0,
+                                       atol=1e-5 * (np.abs(K) @ np.abs(e)).max())
+        else:
+            assert np.array_equal(u, out.inputs[i - 1])
         step = ref.hold(ref.sparse_rrt_cartpole, out.states[i], u, DT, 1)[-1]
         np.testing.assert_allclose(out.states[i + 1], step, rtol=1e-9, atol=1e-9)
+    # one input per hold: the chain is some hundreds of edges, not one per RK4 step
+    breaks = [0, *np.flatnonzero(np.any(out.inputs[1:] != out.inputs[:-1], axis=1)) + 1,
+              len(out.inputs)]
+    assert len(breaks) - 1 <= math.ceil(len(out.inputs) / gain.held.hold)
+    # each such edge, re-simulated in one call from its start as the plan checks do, gives
+    # its states bit for bit
+    from rrtcolearn.integrate import propagate
+
+    for a, b in pairwise(breaks):
+        again = propagate(problem.system, out.states[a], out.inputs[a], DT, b - a)
+        assert np.array_equal(again, out.states[a : b + 1])
     assert np.linalg.norm(out.states[-1] - np.asarray(problem.goal)) <= problem.goal_tolerance
     cost = float(np.sum(DT * (W + 0.5 * out.inputs[:, 0] ** 2)))
     assert lqr.chain_cost(out.inputs) == pytest.approx(cost, rel=1e-12)
@@ -160,3 +204,8 @@ def test_from_the_start_the_cheapest_chain_is_a_gentle_gains_and_under_2x(cart):
         run = lqr.run(start, steps, box, in_goal, gain=other)
         if j != k and run.reached:
             assert cost <= float(np.sum(DT * (W + 0.5 * run.inputs[:, 0] ** 2)))
+    # the held chain costs what the rung's one-step loop costs, within 0.1%
+    steps = max(300, math.ceil(HORIZON_TIME_CONSTANTS * gain.time_constant(DT) / DT))
+    one_step = lqr.run(start, steps, box, in_goal, gain=gain)
+    assert one_step.reached and cost == pytest.approx(lqr.chain_cost(one_step.inputs),
+                                                      rel=1e-3)

@@ -81,6 +81,13 @@ REATTACH_STRETCH = 2
 # lands on itself, a few ulps cheaper, again and again)
 LANDED_ITERATIONS = 60
 LANDED_GAIN = 1e-6
+# the pairwise searches (`_pairs`, `landed_shortcuts`) consider at most this many of a
+# path's nodes, evenly spaced along it (the first and the last kept): every pair of a path of
+# thousands of one-step edges (an LQR chain) is millions of model queries. Paths of the
+# shipped problems have tens of nodes and are searched whole.
+PAIR_NODES = 192
+# `_pairs` asks the model for this many stretches at a time and ``stop()`` between blocks
+PAIR_BLOCK = 4096
 
 
 def _recorded(plan: Plan, prop, path: list[int] | None, key: str, record: dict) -> Plan:
@@ -261,15 +268,34 @@ def _goal_tail(planner: RRTCoLearn, lqr, x0: np.ndarray, budget: float,
     return min(tails, key=lambda t: sum(e.cost for e in t), default=None)
 
 
+def _stations(count: int) -> np.ndarray:
+    """Positions of a path's first ``count`` nodes that the pairwise searches consider: all
+    of them, or PAIR_NODES evenly spaced (the first and the last among them) on a longer
+    path."""
+    if count <= PAIR_NODES:
+        return np.arange(count)
+    return np.unique(np.round(np.linspace(0, count - 1, PAIR_NODES)).astype(int))
+
+
+def _station_pairs(count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of positions (a < b) among `_stations` (count)."""
+    at = _stations(count)
+    i, j = np.triu_indices(at.size, 1)
+    return at[i], at[j]
+
+
 def _pairs(planner: RRTCoLearn, tree: PlannerData, path: list[int], come: np.ndarray,
-           tried: set[tuple[int, int]]) -> list[tuple[int, int, float, np.ndarray]]:
+           tried: set[tuple[int, int]], stop: Callable[[], bool] | None = None
+           ) -> list[tuple[int, int, float, np.ndarray]]:
     """Stretches of ``path`` worth a shortcut, most promising first: positions (a, b),
-    0 <= a < b < the path's last node, spanning two edges or more or one held input, not
-    tried yet, where V accepts the query (x_a, x_b) and J predicts one extremal undercuts
-    the stretch's cost; with J's prediction and U's (k + 1,)."""
+    0 <= a < b < the path's last node (among `_stations`), spanning two edges or more or
+    one held input, not tried yet, where V accepts the query (x_a, x_b) and J predicts one
+    extremal undercuts the stretch's cost; with J's prediction and U's (k + 1,). The model
+    is asked PAIR_BLOCK stretches at a time; none are returned once ``stop()`` is true
+    (asked between blocks)."""
     sys = planner.problem.system
     held = np.isnan(tree.costates[path]).any(axis=1)  # node's edge is a held input
-    a, b = np.triu_indices(len(path) - 1, 1)
+    a, b = _station_pairs(len(path) - 1)
     keep = (b - a >= 2) | held[b]
     keep &= np.array([(path[i], path[j]) not in tried for i, j in zip(a, b, strict=True)],
                      dtype=bool)
@@ -278,7 +304,14 @@ def _pairs(planner: RRTCoLearn, tree: PlannerData, path: list[int], come: np.nda
         return []
     x0, x1 = tree.states[path][a], tree.states[path][b]
     shift = sys.wrap_shift(x0)
-    j, u, valid = planner.model.query(np.hstack([x0 + shift, x1 + shift]))
+    query = np.hstack([x0 + shift, x1 + shift])
+    blocks = []
+    for k in range(0, len(query), PAIR_BLOCK):
+        if k and stop is not None and stop():
+            return []
+        blocks.append(planner.model.query(query[k : k + PAIR_BLOCK]))
+    j, u, valid = (np.concatenate(parts) for parts in zip(*blocks, strict=True)) \
+        if len(blocks) > 1 else blocks[0]
     # J and U mean something only where V accepts the query: far from the data k-NN's J
     # is its neighbours' (sparse_rrt's cart-pole: 0.9 for the whole 40 m transfer)
     gain = np.where(valid, come[b] - come[a] - j, -np.inf)
@@ -326,7 +359,7 @@ def interior_shortcuts(planner: RRTCoLearn, plan: Plan,
     misses = 0
     while misses < INTERIOR_MISSES:
         come = _costs_to_come(tree, path)
-        pairs = _pairs(planner, tree, path, come, tried)
+        pairs = _pairs(planner, tree, path, come, tried, stop)
         if not pairs:
             break
         found = None
@@ -482,7 +515,7 @@ def landed_shortcuts(planner: RRTCoLearn, plan: Plan,
     while misses < INTERIOR_MISSES:
         come = _costs_to_come(tree, path)
         ends = np.concatenate([[0.0], np.cumsum(tree.durations[path[1:]])])
-        a, b = np.triu_indices(len(path), 1)
+        a, b = _station_pairs(len(path))
         excess = come[b] - come[a] - w * (ends[b] - ends[a])  # the input's share of the cost
         keep = (excess > 0) & np.array([(path[i], path[j]) not in tried
                                         for i, j in zip(a, b, strict=True)], dtype=bool)

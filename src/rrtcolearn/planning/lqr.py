@@ -40,9 +40,15 @@ longer than the cheapest reaching chain so far could pay for in time, w T) and k
 cheapest chain that reaches the goal region. On the cart-pole's start (40 m, at rest) the
 running cost's gain reaches the goal in 65 s for 71.1, 1.48x the collocation optimum, where
 Bryson's loop times out. `GoalLQR.cost_to_go`, w e' P e with the running cost's P, ordered
-the connection's cost-aware tries in the measured version (40991cd). Measured and not
-adopted (docs/external_problems.md, "The LQR connection's cost"): the planner builds the
-plain gain; ``build_goal_lqr(..., ladder=True)`` builds the ladder.
+the connection's cost-aware tries. Not adopted (docs/external_problems.md, "The LQR
+connection's cost" and its follow-up: 40991cd took 2.5x the CPU to the first solution and
+overran anytime budgets; with held inputs and a bounded interior search the CPU is within
+1.1x, but the shipped cart-pole's swing-up no longer replays open-loop):
+``build_goal_lqr(..., ladder=True)`` builds the ladder, and the planner asks for it only
+while `connections.LQR_LADDER` is on (off by default). Each rung also has a held version
+(`held_gain`: its input held for ``HOLD_FRACTION`` of its fastest time constant), which
+`cheapest` runs for the rung it chooses, so the chain has one edge per hold (260 instead
+of 6 487 on the cart-pole).
 
 Without finite input limits the input is not clipped (the plain LQR law) unless the problem
 truncates it (``u_max``: |u_j| <= u_max), which then is the box.
@@ -54,14 +60,15 @@ the acrobot's planning CPU went into it, against well under a microsecond compil
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from rrtcolearn.integrate import propagate
 from rrtcolearn.planning.problem import PlanningProblem
 
-__all__ = ["Gain", "GoalLQR", "LQRTry", "build_goal_lqr", "equilibrium", "step_jacobians"]
+__all__ = ["Gain", "GoalLQR", "LQRTry", "build_goal_lqr", "equilibrium", "held_gain",
+           "step_jacobians"]
 
 _GN_ITERATIONS = 30
 # the gentler gains' horizon: this many of the closed loop's slowest time constants (the
@@ -69,6 +76,10 @@ _GN_ITERATIONS = 30
 HORIZON_TIME_CONSTANTS = 4.0
 # the ladder's rungs: the input weight grows by at most this factor from one to the next
 LADDER_STEP = 10.0
+# a gentler gain's input is held for this fraction of its (dt-designed) closed loop's
+# fastest time constant (whole RK4 steps, at least one), its gain designed for that hold
+# (`held_gain`): one edge per hold instead of one per step
+HOLD_FRACTION = 0.5
 _EQ_TOL = 1e-9  # |f(x_e, u_e)| relative to 1 + |f(goal, u_0)|
 _FD_STEP = 1e-6  # central differences, relative to 1 + |value|
 
@@ -150,10 +161,23 @@ class Gain:
     P: np.ndarray
     spectral_radius: float
     input_weight: np.ndarray
+    # the input is held for ``hold`` RK4 steps (K, P and the spectral radius are those of
+    # the sampled loop at hold dt); ``held``: the same weights designed for a longer hold
+    # (`held_gain`), which `GoalLQR.cheapest` runs instead
+    hold: int = 1
+    held: Gain | None = None
 
     def time_constant(self, dt: float) -> float:
-        """The closed loop's slowest time constant, -dt / ln(spectral radius) (s)."""
-        return -dt / float(np.log(self.spectral_radius)) if self.spectral_radius > 0 else dt
+        """The closed loop's slowest time constant, -hold dt / ln(spectral radius) (s)."""
+        period = self.hold * dt
+        return -period / float(np.log(self.spectral_radius)) if self.spectral_radius > 0 \
+            else period
+
+    def fastest_time_constant(self, A: np.ndarray, B: np.ndarray, dt: float) -> float:
+        """The closed loop A - B K's fastest time constant (s) (A, B: the step map's
+        Jacobians at the sampling time hold dt)."""
+        rho = float(np.abs(np.linalg.eigvals(A - B @ self.K)).min())
+        return -self.hold * dt / float(np.log(rho)) if 0.0 < rho < 1.0 else 0.0
 
 
 @dataclass(frozen=True)
@@ -210,6 +234,8 @@ class GoalLQR:
         wrap = np.zeros(x0.size, bool)
         wrap[list(self.problem.goal_angles)] = True
         K, P = (self.K, self.P) if gain is None else (gain.K, gain.P)
+        if gain is not None and gain.hold > 1:
+            return _held_loop(self, x0, gain, int(max_steps), box, goal_mask, validity, wrap)
         args = (np.ascontiguousarray(x0, dtype=np.float64), self.x_e, self.u_e, K,
                 P, self.u_low, self.u_high, wrap, float(self.dt), int(max_steps),
                 low, high)
@@ -246,10 +272,17 @@ class GoalLQR:
         and up to ``HORIZON_TIME_CONSTANTS`` of its slowest time constant, but never longer
         than the cheapest reaching loop so far could pay for in time alone (w T); ties go
         to the earlier, more aggressive gain. (the loop, its gain: 0 for (K, P), k for
-        ``gentler[k - 1]``); unreached, the (K, P) loop's outcome."""
+        ``gentler[k - 1]``); unreached, the (K, P) loop's outcome.
+
+        The rungs are compared by their one-step loops (compiled); the chosen rung then
+        runs again with its input held (`Gain.held`, one input per hold: a chain of
+        hundreds of edges, not thousands), over the same horizon, and that loop is returned
+        where it reaches the goal region and still undercuts Bryson's (else the one-step
+        loop). The held loop runs in numpy, about 10 times the CPU of the compiled one a
+        try: running it only for the chosen rung keeps the failed tries compiled."""
         first = self.run(x0, max_steps, box, goal_mask, validity)
-        best, best_k = first, 0
-        cost = self.chain_cost(first.inputs) if first.reached else np.inf
+        best, best_k, best_steps = first, 0, max_steps
+        bryson = cost = self.chain_cost(first.inputs) if first.reached else np.inf
         for k, gain in enumerate(self.gentler, 1):
             steps = max(max_steps, int(np.ceil(HORIZON_TIME_CONSTANTS
                                                * gain.time_constant(self.dt) / self.dt)))
@@ -259,11 +292,84 @@ class GoalLQR:
                 break
             out = self.run(x0, steps, box, goal_mask, validity, gain)
             if out.reached and (c := self.chain_cost(out.inputs)) < cost:
-                best, best_k, cost = out, k, c
+                best, best_k, best_steps, cost = out, k, steps, c
+        held = self.gentler[best_k - 1].held if best_k else None
+        if held is not None:
+            out = self.run(x0, best_steps, box, goal_mask, validity, held)
+            if out.reached and self.chain_cost(out.inputs) < bryson:
+                return out, best_k
         return best, best_k
 
 
 _NO_HITS = np.empty(0, np.int64)
+
+
+def _held_loop(lqr: GoalLQR, x0: np.ndarray, gain: Gain, max_steps: int,
+               box: tuple[np.ndarray, np.ndarray], goal_mask, validity, wrap: np.ndarray
+               ) -> LQRTry:
+    """`GoalLQR.run` for a gain whose input is held for ``gain.hold`` RK4 steps: u =
+    clip(u_e - K (x - x_e)) at the start of each hold, held by `propagate` (the planner's
+    own RK4, as an edge is re-simulated) for ``hold`` steps (fewer at ``max_steps``). Stops
+    as `run`: at the first state in the goal region ("reached"), at a state outside
+    ``box`` or not finite (dropped, "box"), when the Lyapunov value at the end of a hold
+    (the sampled loop's) exceeds the start's ("basin"), at ``max_steps`` ("timeout"); the
+    obstacle check then runs once on the states kept."""
+    low, high = box
+    sys = lqr.problem.system
+
+    def value(x: np.ndarray) -> tuple[float, np.ndarray]:
+        e = x - lqr.x_e
+        e[wrap] = np.mod(e[wrap] + np.pi, 2.0 * np.pi) - np.pi
+        return float(e @ gain.P @ e), e
+
+    v0, e = value(np.asarray(x0, dtype=np.float64))
+    states, inputs = [np.asarray(x0, dtype=np.float64)[None]], []
+    done, end = 0, "timeout"
+    while done < max_steps:
+        steps = min(gain.hold, max_steps - done)
+        u = np.minimum(np.maximum(lqr.u_e - gain.K @ e, lqr.u_low), lqr.u_high)
+        seg = propagate(sys, states[-1][-1], u, lqr.dt, steps, low, high)[1:]
+        inside = np.all((low <= seg) & (seg <= high), axis=1)
+        hits = np.flatnonzero(goal_mask(seg[: int(np.argmin(inside)) if not inside.all()
+                                            else len(seg)]))
+        if hits.size:
+            seg, end = seg[: hits[0] + 1], "reached"
+        elif not inside.all():
+            seg, end = seg[: int(np.argmin(inside))], "box"
+        states.append(seg)
+        inputs.append(np.repeat(u[None], len(seg), axis=0))
+        done += len(seg)
+        if end != "timeout":
+            break
+        v, e = value(seg[-1])
+        if v > v0:
+            end = "basin"
+            break
+    out = LQRTry(np.concatenate(states), np.concatenate(inputs) if inputs else
+                 np.empty((0, lqr.u_e.size)), end)
+    if validity and len(out.inputs) and not validity(out.states[1:]).all():
+        return LQRTry(out.states, out.inputs, "obstacle")
+    return out
+
+
+def held_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, hold: int
+              ) -> Gain | None:
+    """The gain for the weights (Q, R) (per step dt) with the input held for ``hold``
+    steps: the discrete Riccati equation of the sampled system (A^hold, sum_i<hold A^i B)
+    with the weights hold Q, hold R; None where it has no stabilising solution."""
+    Ah, Bh, term = np.eye(len(A)), np.zeros_like(B), np.eye(len(A))
+    for _ in range(hold):
+        Bh = Bh + term @ B
+        term = term @ A
+    Ah = term
+    try:
+        K, P = _riccati(Ah, Bh, hold * Q, hold * R)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(K))):
+        return None
+    rho = float(np.abs(np.linalg.eigvals(Ah - Bh @ K)).max())
+    return Gain(K, 0.5 * (P + P.T), rho, np.diag(R).copy(), hold) if rho < 1.0 else None
 
 
 def _closed_loop(system, x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps, low, high):
@@ -345,8 +451,8 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
     inputs without finite limits (identity if not given), and with ``time_weight`` (w) what
     prices the chains `GoalLQR.cheapest` compares; the gentler gains' input weights are
     `ladder_weights` from Bryson's to dt R / w (an unstable or failed rung is left out),
-    solved only with ``ladder`` (the planner does not ask for it: not adopted,
-    docs/external_problems.md)."""
+    solved only with ``ladder`` (the planner's LQR connection asks for it only while
+    `connections.LQR_LADDER` is on, off by default; docs/external_problems.md)."""
     sys = problem.system
     m = sys.n_inputs
     u_low, u_high = input_box(problem)
@@ -386,6 +492,9 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
             continue
         rho_r = float(np.abs(np.linalg.eigvals(A - B @ Kr)).max())
         if rho_r < 1.0:
-            gentler.append(Gain(Kr, 0.5 * (Pr + Pr.T), rho_r, r))
+            gain = Gain(Kr, 0.5 * (Pr + Pr.T), rho_r, r)
+            hold = int(HOLD_FRACTION * gain.fastest_time_constant(A, B, dt) / dt)
+            held = held_gain(A, B, Q, np.diag(r), hold) if hold > 1 else None
+            gentler.append(gain if held is None else replace(gain, held=held))
     return GoalLQR(problem, float(dt), x_e, u_e, K, 0.5 * (P + P.T), u_low, u_high, rho,
                    tuple(gentler), float(time_weight), cost_r)
