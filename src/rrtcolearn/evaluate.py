@@ -204,21 +204,27 @@ def plan_problem(system: System, plan, goal_fn=None) -> PlanningProblem:
                            goal_weights=problem.goal_weights, goal_fn=problem.goal_fn)
 
 
-def replay(problem, plan) -> dict:
+def replay(problem, plan, dt: float | None = None) -> dict:
     """Re-integrate a plan's path (any planner's `Plan`) from the problem's start, each edge
     from where the previous one ended (`edge_trajectory`, not from the stored nodes), and
     check it against ``problem`` (a `PlanningProblem`): ``path_cost``, ``path_duration``,
-    ``max_abs_u``, ``final_goal_distance`` (`PlanningProblem.goal_distance`) and whether the
-    path ``reaches_goal``, keeps its inputs in the box (``inputs_in_box``: the system's
-    limits and ``u_max``) and its states ``valid`` (finite, in the state constraints, free of
-    obstacles at every step). ``reaches_goal`` needs all three: one check for every planner."""
+    ``max_abs_u``, ``final_goal_distance`` (`PlanningProblem.goal_distance`), the
+    ``final_state`` and whether the path ``reaches_goal``, keeps its inputs in the box
+    (``inputs_in_box``: the system's limits and ``u_max``) and its states ``valid`` (finite,
+    in the state constraints, free of obstacles at every step). ``reaches_goal`` needs all
+    three: one check for every planner. ``dt``: the RK4 step to re-integrate at, a whole
+    fraction of the plan's (default the plan's own; `step_check`)."""
     system = problem.system
+    step = float(plan.dt)
+    dt = step if dt is None else float(dt)
+    if not (dt > 0 and abs(round(step / dt) * dt - step) <= 1e-9 * step):
+        raise ValueError(f"dt {dt}: give a whole fraction of the plan's step {step}")
     low_u, high_u = input_box(problem)
     x = np.asarray(problem.start, dtype=np.float64)
     cost = duration = max_u = 0.0
     valid = inputs_ok = True
     for e in plan.edges():
-        t = edge_trajectory(system, {**e, "from": x.tolist()}, plan.time_weight, plan.dt)
+        t = edge_trajectory(system, {**e, "from": x.tolist()}, plan.time_weight, dt)
         max_u = max(max_u, float(np.abs(t.inputs).max()))
         inputs_ok &= bool(np.all((t.inputs >= low_u - 1e-9) & (t.inputs <= high_u + 1e-9)))
         states = t.states[1:]
@@ -226,13 +232,31 @@ def replay(problem, plan) -> dict:
         if problem.validity and len(states):
             valid &= bool(problem.validity(states).all())
         cost += t.cost
-        duration += (len(t.states) - 1) * plan.dt
+        duration += (len(t.states) - 1) * dt
         x = t.states[-1]
     gap = float(problem.goal_distance(x[None])[0])
     return {"path_cost": cost, "path_duration": duration, "max_abs_u": max_u,
-            "final_goal_distance": gap, "inputs_in_box": inputs_ok, "valid": valid,
-            "reaches_goal": bool(plan.path_nodes) and valid and inputs_ok
+            "final_goal_distance": gap, "final_state": x.tolist(), "inputs_in_box": inputs_ok,
+            "valid": valid, "reaches_goal": bool(plan.path_nodes) and valid and inputs_ok
             and gap <= problem.goal_tolerance + 1e-9}
+
+
+def step_check(problem, plan) -> dict:
+    """Does the plan's integration step resolve its path? The path `replay`-ed from the
+    start at the plan's step and at half of it (RK4's error there is about 1/16 of the
+    step's: their difference estimates the plan's own integration error against the
+    continuous dynamics). ``gap``: the distance between the two ends; ``goal_distance``:
+    the half step's end from the goal region (`PlanningProblem.goal_distance`);
+    ``reaches_goal``: the half step's replay still reaches the goal region (and stays valid,
+    inputs in their box). A path that reaches the goal at its step but not at half of it is
+    not resolved by that step: errors grown along it (through an unstable equilibrium, a
+    long slow approach) are as large as the goal region (another seed, or a model fitted
+    at a smaller ``generate.dt``, plans at a step that does)."""
+    full = replay(problem, plan)
+    half = replay(problem, plan, float(plan.dt) / 2.0)
+    gap = float(np.linalg.norm(np.subtract(full["final_state"], half["final_state"])))
+    return {"gap": gap, "goal_distance": half["final_goal_distance"],
+            "reaches_goal": bool(half["reaches_goal"])}
 
 
 class PlanCheckError(ArtefactError, ValueError):

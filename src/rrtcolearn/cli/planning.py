@@ -22,9 +22,11 @@ from rrtcolearn.cli.common import (
     SystemOpt,
     UMaxOpt,
     WorkersOpt,
+    console,
     guard,
     nested_options,
     print_summary,
+    printable,
     progress_bar,
     run_name,
 )
@@ -99,7 +101,26 @@ def plan_summary(p: Plan) -> dict:
                 f"{k} {v}" for k, v in p.extra["connections_switched_on"].items())}
                if "connections_switched_on" in p.extra else {}),
             **(_anytime_summary(p.extra["anytime"]) if "anytime" in p.extra else {}),
-            **(_polish_summary(p.extra["polish"]) if "polish" in p.extra else {})}
+            **(_polish_summary(p.extra["polish"]) if "polish" in p.extra else {}),
+            **({"half_step_check": step_summary(p)} if "step_check" in p.extra else {})}
+
+
+def step_summary(p: Plan) -> str:
+    """`evaluate.step_check`'s verdict in words: the path at half the plan's step."""
+    c = p.extra["step_check"]
+    where = (f"at dt/2 it ends {c['goal_distance']:.3g} from the goal (tolerance "
+             f"{p.goal_tolerance:.3g}), {c['gap']:.2g} from the plan's end")
+    if c["reaches_goal"]:
+        return f"resolved: {where}"
+    return (f"NOT resolved by the step dt = {p.dt:g}: {where}; the path's integration error "
+            f"is as large as the goal region: plan with another seed, or fit the model with "
+            f"a smaller generate.dt")
+
+
+def warn_unresolved(p: Plan) -> None:
+    """A warning on stderr for a solved plan whose step does not resolve it."""
+    if "step_check" in p.extra and not p.extra["step_check"]["reaches_goal"]:
+        console.print(f"[bold yellow]warning:[/] {printable(step_summary(p))}", highlight=False)
 
 
 def _polish_summary(r: dict) -> dict:
@@ -237,6 +258,7 @@ def plan(
         write_plan(p, out_path, fitted.system.state_names, plot=plot)
         write_dynobench(read, p, fitted.system, out_path)
         print_summary(f"plan -> {out_path}", plan_summary(p))
+        warn_unresolved(p)
     with _collector_paused() as started:
         guard(lambda: body(started))
 

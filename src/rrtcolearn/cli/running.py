@@ -30,7 +30,13 @@ from rrtcolearn.cli.common import (
     run_directory,
     run_name,
 )
-from rrtcolearn.cli.planning import plan_summary, read_dynobench, write_dynobench, write_plan
+from rrtcolearn.cli.planning import (
+    plan_summary,
+    read_dynobench,
+    warn_unresolved,
+    write_dynobench,
+    write_plan,
+)
 
 if TYPE_CHECKING:
     from rrtcolearn.config import Config
@@ -167,6 +173,7 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         _print_derived(fitted.config)
         print_summary(f"run -> {run_dir}", {k: v for k, v in figures.items()
                                              if k != "derived"})
+        warn_unresolved(p)
     guard(body)
 
 

@@ -128,6 +128,12 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
             result.extra["polish"] = _polish_record(result)
     else:
         result = planner.solve(termination, seed)
+    if result.solved:
+        # the plan's step against half of it (`evaluate.step_check`): whether the step
+        # resolves the path, reported and warned about, never silently trusted
+        from rrtcolearn.evaluate import step_check
+
+        result.extra["step_check"] = step_check(problem, result)
     result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None
     result.extra["config"] = cfg.model_dump(mode="json")
     return result

@@ -1,0 +1,92 @@
+"""`evaluate.step_check`: a solved plan's path re-integrated at half its step, the verdict
+whether its step resolves it, as `pipeline.plan` records it and the command line reports it.
+The references integrate the path again with the plain RK4 and hand-written dynamics of
+tests/references.py and tests/conftest.py (no code shared with the package's integrators)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from tests import references as ref
+from tests.conftest import pendulum_edge
+from tests.swingup import GOAL, TOLERANCE, plan_swingup
+
+from rrtcolearn.cli.planning import plan_summary, warn_unresolved
+from rrtcolearn.evaluate import step_check
+from rrtcolearn.planning.problem import PlanningProblem
+from rrtcolearn.planning.rrt import RRTCoLearn
+from rrtcolearn.planning.settings import PlannerSettings
+from rrtcolearn.planning.termination import TerminationCondition
+from rrtcolearn.systems import make
+
+
+def _cartpole_swingup(dt: float, seed: int):
+    """The shipped cart-pole swung up under |f| <= 219.9 N with random controls and the goal
+    LQR (every edge a held input) at the step ``dt``."""
+    system = make("cartpole")
+    d = system.defaults
+    problem = PlanningProblem.create(system, d["start"], d["goal"], 0.3, u_max=219.9,
+                                     wrap_goal=True)
+    plan = RRTCoLearn(problem, None, PlannerSettings(
+        dt=dt, control_edges=True, max_duration=0.5, goal_lqr=True)).solve(
+        TerminationCondition(None, 20000), seed)
+    assert plan.solved
+    return problem, plan
+
+
+def _held_end(plan, x0, dt: float) -> np.ndarray:
+    """The path's inputs held from ``x0``, edge after edge, by the reference RK4 at ``dt``."""
+    x = np.asarray(x0, dtype=float)
+    for e in plan.edges():
+        x = ref.hold(ref.cartpole, x, e["control"], dt, round(e["duration"] / dt))[-1]
+    return x
+
+
+def _wrapped_distance(x: np.ndarray, goal: np.ndarray) -> float:
+    d = x - goal
+    d[1] = (d[1] + np.pi) % (2 * np.pi) - np.pi  # the pole's angle, modulo a turn
+    return float(np.linalg.norm(d))
+
+
+# dt 0.01, seed 1: resolved (the two ends 6e-5 apart); dt 0.02, seed 0: a path that reaches
+# the goal region at its own step and ends 0.306 from the goal at half of it (tolerance 0.3)
+@pytest.mark.parametrize("dt, seed, resolved", [(0.01, 1, True), (0.02, 0, False)])
+def test_the_half_step_verdict_matches_a_hand_integration(dt, seed, resolved):
+    problem, plan = _cartpole_swingup(dt, seed)
+    goal = np.asarray(problem.goal, dtype=float)
+    full, half = _held_end(plan, problem.start, dt), _held_end(plan, problem.start, dt / 2)
+    assert _wrapped_distance(full, goal) <= 0.3  # the plan's claim holds at its own step
+    check = step_check(problem, plan)
+    assert check["gap"] == pytest.approx(np.linalg.norm(full - half), rel=1e-6, abs=1e-9)
+    assert check["goal_distance"] == pytest.approx(_wrapped_distance(half, goal), rel=1e-6)
+    assert check["reaches_goal"] is (_wrapped_distance(half, goal) <= 0.3) is resolved
+
+
+def test_the_command_line_warns_of_an_unresolved_plan(capsys):
+    problem, plan = _cartpole_swingup(0.02, 0)
+    plan.extra["step_check"] = step_check(problem, plan)
+    row = plan_summary(plan)["half_step_check"]
+    assert row.startswith("NOT resolved by the step dt = 0.02") and "0.306 from the goal" in row
+    warn_unresolved(plan)
+    assert "warning: NOT resolved" in " ".join(capsys.readouterr().err.split())
+    plan.extra["step_check"]["reaches_goal"] = True
+    warn_unresolved(plan)
+    assert capsys.readouterr().err == ""
+
+
+def test_pipeline_plan_records_the_check_of_a_pendulum_swing_up(paper_model):
+    p = plan_swingup(paper_model, 0, max_iterations=3000)
+    assert p.solved
+    w, dt = float(p.time_weight), float(p.dt)
+    x = np.asarray(p.edges()[0]["from"], dtype=float)
+    full = half = x
+    for e in p.edges():
+        full = pendulum_edge({**e, "from": full}, w, dt)[0][-1]
+        half = pendulum_edge({**e, "from": half}, w, dt / 2)[0][-1]
+    c = p.extra["step_check"]
+    assert c["gap"] == pytest.approx(np.linalg.norm(full - half), rel=1e-6, abs=1e-12)
+    d = half - GOAL
+    d[0] = (d[0] + np.pi) % (2 * np.pi) - np.pi
+    assert c["goal_distance"] == pytest.approx(np.linalg.norm(d), rel=1e-9)
+    assert c["reaches_goal"] is bool(np.linalg.norm(d) <= TOLERANCE)
+    assert "half_step_check" in plan_summary(p)
