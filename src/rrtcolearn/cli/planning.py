@@ -106,20 +106,22 @@ def plan_summary(p: Plan) -> dict:
 
 
 def step_summary(p: Plan) -> str:
-    """`evaluate.step_check`'s verdict in words: the path at half the plan's step."""
+    """`evaluate.step_check`'s figures in words: the path at half the plan's step."""
     c = p.extra["step_check"]
-    where = (f"at dt/2 it ends {c['goal_distance']:.3g} from the goal (tolerance "
-             f"{p.goal_tolerance:.3g}), {c['gap']:.2g} from the plan's end")
-    if c["reaches_goal"]:
+    tol = p.goal_tolerance
+    where = (f"at dt/2 the end moves {c['goal_gap']:.2g} (goal tolerance {tol:.3g}) to "
+             f"{c['goal_distance']:.3g} from the goal"
+             + ("" if c["valid"] else "; a state grazes an obstacle or a state bound"))
+    if c["resolved"]:
         return f"resolved: {where}"
-    return (f"NOT resolved by the step dt = {p.dt:g}: {where}; the path's integration error "
-            f"is as large as the goal region: plan with another seed, or fit the model with "
+    return (f"NOT resolved by the step dt = {p.dt:g}: {where}: the plan's integration error "
+            f"is as large as the goal region; plan with another seed, or fit the model with "
             f"a smaller generate.dt")
 
 
 def warn_unresolved(p: Plan) -> None:
     """A warning on stderr for a solved plan whose step does not resolve it."""
-    if "step_check" in p.extra and not p.extra["step_check"]["reaches_goal"]:
+    if "step_check" in p.extra and not p.extra["step_check"]["resolved"]:
         console.print(f"[bold yellow]warning:[/] {printable(step_summary(p))}", highlight=False)
 
 
