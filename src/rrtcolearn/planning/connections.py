@@ -7,7 +7,7 @@ state between the loop's goal-biased iterations.
 - `FunnelConnection`: continuation along a funnel of extremals into the goal
   (`funnel.GoalFunnel`), then polished by shooting;
 - `LQRConnection`: the LQR closed loop about the goal's equilibrium (`lqr.GoalLQR`) as a chain
-  of constant-input edges, the cheapest of its ladder of gains (`GoalLQR.cheapest`).
+  of constant-input edges.
 
 `shoot_edge` and `lqr_chain` are also what the anytime shortcuts (`planning.improve`) use.
 When each connection is switched on is `planning.schedule`'s to say.
@@ -30,14 +30,6 @@ from rrtcolearn.planning.propagator import Propagator
 from rrtcolearn.planning.schedule import Allowance
 from rrtcolearn.planning.shooting import shoot
 
-# the LQR connection's ladder of gentler gains and its cost-aware tries (`LQRConnection`,
-# `lqr.build_goal_lqr`'s ``ladder``): sparse_rrt's cart-pole's first solution 2 150x -> 1.48x
-# its optimum for 1.00-1.11x the CPU to it in sequential runs, but the shipped cart-pole's
-# swing-up (tests/test_tracking.py) then ends in a long gentle chain near the upright that
-# no longer replays open-loop. Off: the connection is the plain Bryson loop
-# (docs/external_problems.md, "The LQR connection's cost", follow-up)
-LQR_LADDER = False
-
 FUNNEL_POINTS = 3  # funnel states tried per node (each on its own extremal, nearest first)
 FUNNEL_STRETCH = 1.5  # a funnel connection may last this times the funnel's duration
 
@@ -56,21 +48,16 @@ def shoot_edge(propagator: Propagator, x0: np.ndarray, params: np.ndarray, durat
     return propagator.goal_extremal(x0, np.append(res.params, res.steps * s.dt), lam, z0)
 
 
-def lqr_chain(propagator: Propagator, lqr: GoalLQR, x0: np.ndarray, gentle: bool = False
+def lqr_chain(propagator: Propagator, lqr: GoalLQR, x0: np.ndarray
               ) -> tuple[list[Edge] | None, str]:
     """The LQR closed loop from ``x0`` as a chain of constant-input edges (consecutive equal
-    inputs, e.g. saturated, merged into one): the cheapest of the ladder's loops that reach
-    the goal region (`GoalLQR.cheapest`: Bryson's gain within ``funnel_duration``, the
-    gentler ones within their own horizons), and how the loop ended (Bryson's loop's end
-    when none reached). ``gentle``: only a gentler gain's chain (None, "bryson", where
-    Bryson's is the cheapest)."""
+    inputs, e.g. saturated, merged into one) if it reaches the goal region within
+    ``funnel_duration``, and how the loop ended (`GoalLQR.run`)."""
     prob, s = propagator.problem, propagator.settings
-    out, k = lqr.cheapest(x0, max(1, round(s.funnel_duration / s.dt)), propagator.box,
-                          propagator.goal_mask, prob.validity if prob.validity else None)
+    out = lqr.run(x0, max(1, round(s.funnel_duration / s.dt)), propagator.box,
+                  propagator.goal_mask, prob.validity if prob.validity else None)
     if not out.reached:
         return None, out.end
-    if gentle and k == 0:
-        return None, "bryson"
     us = out.inputs
     breaks = [0, *np.flatnonzero(np.any(us[1:] != us[:-1], axis=1)) + 1, len(us)]
     chain = []
@@ -88,8 +75,7 @@ def lqr_chain(propagator: Propagator, lqr: GoalLQR, x0: np.ndarray, gentle: bool
 def goal_lqr(propagator: Propagator) -> GoalLQR | str:
     """The LQR controller about the goal's equilibrium, or why there is none
     (`lqr.build_goal_lqr`)."""
-    return build_goal_lqr(propagator.problem, propagator.settings.dt, propagator.input_weight,
-                          propagator.settings.time_weight, ladder=LQR_LADDER)
+    return build_goal_lqr(propagator.problem, propagator.settings.dt, propagator.input_weight)
 
 
 class ShootingConnection:
@@ -308,18 +294,8 @@ def _nearest_of(found: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray,
 
 
 class LQRConnection:
-    """The LQR closed loop (`GoalLQR.cheapest`: the cheapest chain of its ladder of gains)
-    from the untried node with the least Lyapunov value, and, where there is a ladder, on an
-    `Allowance` of its own, from the node with the least cost to come plus
-    `GoalLQR.cost_to_go` (the root first), there keeping only a gentler gain's chain.
-
-    Why: on sparse_rrt's cart-pole the running cost's gain brings the start to the goal at
-    1.48x the optimum where the least-V nodes, fast and near the goal, cost thousands of
-    times it. Only a gentler gain's chain: where Bryson's is the cheapest, the node is left
-    to the first order (on the quadrotor the start's Bryson chain, found first by every
-    restart, held the anytime paths at 1.66x against 1.04x; docs/external_problems.md). Off
-    (never connects, ``off`` says why) where the goal has no
-    equilibrium or the loop is unstable."""
+    """The LQR closed loop from the untried node with the least Lyapunov value; off (never
+    connects, ``off`` says why) where the goal has no equilibrium or the loop is unstable."""
 
     name = "lqr"
 
@@ -331,11 +307,6 @@ class LQRConnection:
         # connection has started from it; `tries` counts the closed loops run
         self.value = np.full(256, np.inf)
         self.tried = np.zeros(256, dtype=bool)
-        # the cost-aware order: per node the cost to come plus `GoalLQR.cost_to_go`, and
-        # whether the loop has started from it in this order
-        self.priced = np.full(256, np.inf)
-        self.priced_tried = np.zeros(256, dtype=bool)
-        self.priced_allowance = Allowance()  # its tries, ever rarer while they fail
         self.queried = 0
         self.tries = 0
         # the least value from which the loop ran out of time (funnel_duration) without
@@ -343,38 +314,20 @@ class LQRConnection:
         self.ceiling = np.inf
 
     def connect(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
-        """The LQR closed loop to the goal, as a chain of constant-input edges (`lqr_chain`),
-        first (when its allowance holds a try) from the untried node with the least cost to
-        come plus estimated cost to go, then from the untried node with the least Lyapunov
-        value; (node, edges) or None when neither reaches the goal region (within
-        ``funnel_duration``, or a gentler gain's horizon), or they leave the constraints,
-        meet an obstacle or leave the loop's basin (`GoalLQR.run`). Once a loop from the
-        least-value node runs out of time, only nodes with a lower value than its start are
-        tried in that order."""
+        """The LQR closed loop to the goal from the untried node with the least Lyapunov
+        value, as a chain of constant-input edges; (node, edges) or None when it does not
+        reach the goal region within ``funnel_duration``, leaves the constraints, meets an
+        obstacle or leaves the loop's basin (`GoalLQR.run`). Once a loop runs out of time,
+        only nodes with a lower value than its start are tried."""
         lqr = self.lqr
         if lqr is None:
             return None
         m = tree.data.n_nodes
         self.value = grown(self.value, m, np.inf)
         self.tried = grown(self.tried, m, False)
-        self.priced = grown(self.priced, m, np.inf)
-        self.priced_tried = grown(self.priced_tried, m, False)
         if self.queried < m:
-            new = np.arange(self.queried, m)
-            self.value[new] = lqr.value(tree.data.states[new])
-            if lqr.gentler:
-                self.priced[new] = tree.data.cost_to_come(new) + lqr.cost_to_go(
-                    tree.data.states[new])
+            self.value[self.queried : m] = lqr.value(tree.data.states[self.queried : m])
             self.queried = m
-        priced = np.where(self.priced_tried[:m], np.inf, self.priced[:m])
-        node = int(np.argmin(priced))
-        self.priced_allowance.accrue()
-        if lqr.gentler and np.isfinite(priced[node]) and self.priced_allowance.take():
-            self.priced_tried[node] = True
-            self.tries += 1
-            chain, _ = lqr_chain(self.propagator, lqr, tree.data.states[node], gentle=True)
-            if chain is not None:
-                return node, chain
         value = np.where(self.tried[:m], np.inf, self.value[:m])
         node = int(np.argmin(value))
         if not value[node] < self.ceiling:

@@ -28,58 +28,32 @@ What, for any `System` (nothing here depends on the system's name or on one quer
   the Lyapunov value (x - x_e)' P (x - x_e) exceeds its value at the start (the state is not
   in the saturated loop's basin: aborting there keeps failed tries cheap).
 
-The cost-aware ladder (`GoalLQR.cheapest`, issue 31). Bryson's R prices an input by its box:
-where the running cost w + u^T R u / 2 prices it far dearer (sparse_rrt's cart-pole: |F| <= 300,
-R = 1, 9e4 times Bryson's weight), the loop spends the whole box to settle fast and its chain
-costs thousands of times what a slower motion would. So `build_goal_lqr` also solves the
-Riccati equation for gentler input weights, geometrically from Bryson's R towards dt R / w
-(the running cost's, in rungs of at most ``LADDER_STEP``; inputs the running cost prices no
-dearer stay), and `GoalLQR.cheapest` runs each (Bryson's for ``max_steps``, each gentler one
-for up to ``HORIZON_TIME_CONSTANTS`` of its closed loop's slowest time constant, never
-longer than the cheapest reaching chain so far could pay for in time, w T) and keeps the
-cheapest chain that reaches the goal region. On the cart-pole's start (40 m, at rest) the
-running cost's gain reaches the goal in 65 s for 71.1, 1.48x the collocation optimum, where
-Bryson's loop times out. `GoalLQR.cost_to_go`, w e' P e with the running cost's P, ordered
-the connection's cost-aware tries. Not adopted (docs/external_problems.md, "The LQR
-connection's cost" and its follow-up: 40991cd took 2.5x the CPU to the first solution and
-overran anytime budgets; with held inputs and a bounded interior search the CPU is within
-1.1x, but the shipped cart-pole's swing-up no longer replays open-loop):
-``build_goal_lqr(..., ladder=True)`` builds the ladder, and the planner asks for it only
-while `connections.LQR_LADDER` is on (off by default). Each rung also has a held version
-(`held_gain`: its input held for ``HOLD_FRACTION`` of its fastest time constant), which
-`cheapest` runs for the rung it chooses, so the chain has one edge per hold (260 instead
-of 6 487 on the cart-pole).
-
 Without finite input limits the input is not clipped (the plain LQR law) unless the problem
 truncates it (``u_max``: |u_j| <= u_max), which then is the box.
 
 The loop is compiled with the system's other kernels (`integrate.closed_loop_jit`, cached on
 disk): it cost about 30 us per RK4 step in numpy around the one-step `propagate`, a third of
 the acrobot's planning CPU went into it, against well under a microsecond compiled.
+
+A cost-aware ladder of gentler gains (Bryson's input weight towards the running cost's, the
+cheapest reaching chain kept; issue 31) was tried and removed: its cheap chains were slow
+approaches to an unstable equilibrium that the planner's step ``dt`` does not resolve (the
+same inputs re-integrated at dt/2 end outside the goal region), so its costs were not real
+(docs/external_problems.md, "The LQR connection's cost").
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from rrtcolearn.integrate import propagate
 from rrtcolearn.planning.problem import PlanningProblem
 
-__all__ = ["Gain", "GoalLQR", "LQRTry", "build_goal_lqr", "equilibrium", "held_gain",
-           "step_jacobians"]
+__all__ = ["GoalLQR", "LQRTry", "build_goal_lqr", "equilibrium", "step_jacobians"]
 
 _GN_ITERATIONS = 30
-# the gentler gains' horizon: this many of the closed loop's slowest time constants (the
-# slowest mode's offset falls to e^-4, 2%, of its start)
-HORIZON_TIME_CONSTANTS = 4.0
-# the ladder's rungs: the input weight grows by at most this factor from one to the next
-LADDER_STEP = 10.0
-# a gentler gain's input is held for this fraction of its (dt-designed) closed loop's
-# fastest time constant (whole RK4 steps, at least one), its gain designed for that hold
-# (`held_gain`): one edge per hold instead of one per step
-HOLD_FRACTION = 0.5
 _EQ_TOL = 1e-9  # |f(x_e, u_e)| relative to 1 + |f(goal, u_0)|
 _FD_STEP = 1e-6  # central differences, relative to 1 + |value|
 
@@ -153,34 +127,6 @@ class LQRTry:
 
 
 @dataclass(frozen=True)
-class Gain:
-    """One LQR gain about the goal's equilibrium: K (m, n), the Riccati solution P (n, n),
-    the closed loop's spectral radius and the input weight R (m,) it was solved with."""
-
-    K: np.ndarray
-    P: np.ndarray
-    spectral_radius: float
-    input_weight: np.ndarray
-    # the input is held for ``hold`` RK4 steps (K, P and the spectral radius are those of
-    # the sampled loop at hold dt); ``held``: the same weights designed for a longer hold
-    # (`held_gain`), which `GoalLQR.cheapest` runs instead
-    hold: int = 1
-    held: Gain | None = None
-
-    def time_constant(self, dt: float) -> float:
-        """The closed loop's slowest time constant, -hold dt / ln(spectral radius) (s)."""
-        period = self.hold * dt
-        return -period / float(np.log(self.spectral_radius)) if self.spectral_radius > 0 \
-            else period
-
-    def fastest_time_constant(self, A: np.ndarray, B: np.ndarray, dt: float) -> float:
-        """The closed loop A - B K's fastest time constant (s) (A, B: the step map's
-        Jacobians at the sampling time hold dt)."""
-        rho = float(np.abs(np.linalg.eigvals(A - B @ self.K)).min())
-        return -self.hold * dt / float(np.log(rho)) if 0.0 < rho < 1.0 else 0.0
-
-
-@dataclass(frozen=True)
 class GoalLQR:
     """The LQR feedback about the goal's equilibrium (`build_goal_lqr` makes it).
 
@@ -198,11 +144,6 @@ class GoalLQR:
     u_low: np.ndarray
     u_high: np.ndarray
     spectral_radius: float
-    # the cost-aware ladder (`cheapest`): gains with gentler input weights, Bryson's towards
-    # the running cost's, and the running cost's w and R (m, m) that price their chains
-    gentler: tuple[Gain, ...] = ()
-    time_weight: float = 0.0
-    cost_weight: np.ndarray | None = None
 
     def offset(self, x: np.ndarray) -> np.ndarray:
         """(N, n) x - x_e, angle coordinates as the goal test compares them (modulo a turn
@@ -219,11 +160,10 @@ class GoalLQR:
         return np.einsum("ij,jk,ik->i", e, self.P, e)
 
     def run(self, x0: np.ndarray, max_steps: int, box: tuple[np.ndarray, np.ndarray],
-            goal_mask, validity=None, gain: Gain | None = None) -> LQRTry:
+            goal_mask, validity=None) -> LQRTry:
         """The closed loop from ``x0``: u = clip(u_e - K (x - x_e)) held for each RK4 step,
         until a state is in the goal region (``goal_mask``: states (N, n) -> (N,) bool, the
-        planner's goal test), for at most ``max_steps`` steps; ``gain``: one of `gentler`
-        instead of (K, P). It stops unreached at a state
+        planner's goal test), for at most ``max_steps`` steps. It stops unreached at a state
         outside ``box`` (the constraint box, +-inf where free) or not finite (that state
         dropped), once the Lyapunov value exceeds its start value, and at a state that
         ``validity`` (the obstacle checker: states -> (N,) bool) rejects. The loop runs
@@ -233,11 +173,8 @@ class GoalLQR:
         low, high = box
         wrap = np.zeros(x0.size, bool)
         wrap[list(self.problem.goal_angles)] = True
-        K, P = (self.K, self.P) if gain is None else (gain.K, gain.P)
-        if gain is not None and gain.hold > 1:
-            return _held_loop(self, x0, gain, int(max_steps), box, goal_mask, validity, wrap)
-        args = (np.ascontiguousarray(x0, dtype=np.float64), self.x_e, self.u_e, K,
-                P, self.u_low, self.u_high, wrap, float(self.dt), int(max_steps),
+        args = (np.ascontiguousarray(x0, dtype=np.float64), self.x_e, self.u_e, self.K,
+                self.P, self.u_low, self.u_high, wrap, float(self.dt), int(max_steps),
                 low, high)
         states, inputs, how = sys.closed_loop_jit(*args) if sys.closed_loop_jit is not None \
             else _closed_loop(sys, *args)
@@ -249,127 +186,8 @@ class GoalLQR:
             return LQRTry(states[: end + 1], inputs[:end], "reached")
         return LQRTry(states, inputs, ("timeout", "box", "basin")[how])
 
-    def cost_to_go(self, x: np.ndarray) -> np.ndarray:
-        """(N,) an estimate of the running cost from states (N, n) to the goal: w (x - x_e)'
-        P (x - x_e) with the P of the gentlest gain (the last of `gentler`, else (K, P)),
-        the LQR cost whose input weight is the running cost's (per unit of w)."""
-        P = self.gentler[-1].P if self.gentler else self.P
-        e = self.offset(x)
-        w = self.time_weight if self.time_weight > 0 else 1.0
-        return w * np.einsum("ij,jk,ik->i", e, P, e)
-
-    def chain_cost(self, inputs: np.ndarray) -> float:
-        """The running cost of holding ``inputs`` (k, m) for a step each: the sum of
-        dt (w + u^T R u / 2) (what the planner's edges cost)."""
-        R = np.eye(self.u_e.size) if self.cost_weight is None else self.cost_weight
-        effort = 0.5 * np.einsum("ki,ij,kj->k", inputs, R, inputs)
-        return float(np.sum(self.dt * (self.time_weight + effort)))
-
-    def cheapest(self, x0: np.ndarray, max_steps: int, box: tuple[np.ndarray, np.ndarray],
-                 goal_mask, validity=None) -> tuple[LQRTry, int]:
-        """The cheapest closed loop from ``x0`` that reaches the goal region among the gain
-        (K, P) run for ``max_steps`` steps and each of `gentler` run for at least as long
-        and up to ``HORIZON_TIME_CONSTANTS`` of its slowest time constant, but never longer
-        than the cheapest reaching loop so far could pay for in time alone (w T); ties go
-        to the earlier, more aggressive gain. (the loop, its gain: 0 for (K, P), k for
-        ``gentler[k - 1]``); unreached, the (K, P) loop's outcome.
-
-        The rungs are compared by their one-step loops (compiled); the chosen rung then
-        runs again with its input held (`Gain.held`, one input per hold: a chain of
-        hundreds of edges, not thousands), over the same horizon, and that loop is returned
-        where it reaches the goal region and still undercuts Bryson's (else the one-step
-        loop). The held loop runs in numpy, about 10 times the CPU of the compiled one a
-        try: running it only for the chosen rung keeps the failed tries compiled."""
-        first = self.run(x0, max_steps, box, goal_mask, validity)
-        best, best_k, best_steps = first, 0, max_steps
-        bryson = cost = self.chain_cost(first.inputs) if first.reached else np.inf
-        for k, gain in enumerate(self.gentler, 1):
-            steps = max(max_steps, int(np.ceil(HORIZON_TIME_CONSTANTS
-                                               * gain.time_constant(self.dt) / self.dt)))
-            if self.time_weight > 0 and np.isfinite(cost):
-                steps = min(steps, int(cost / (self.time_weight * self.dt)))
-            if steps < 1:
-                break
-            out = self.run(x0, steps, box, goal_mask, validity, gain)
-            if out.reached and (c := self.chain_cost(out.inputs)) < cost:
-                best, best_k, best_steps, cost = out, k, steps, c
-        held = self.gentler[best_k - 1].held if best_k else None
-        if held is not None:
-            out = self.run(x0, best_steps, box, goal_mask, validity, held)
-            if out.reached and self.chain_cost(out.inputs) < bryson:
-                return out, best_k
-        return best, best_k
-
 
 _NO_HITS = np.empty(0, np.int64)
-
-
-def _held_loop(lqr: GoalLQR, x0: np.ndarray, gain: Gain, max_steps: int,
-               box: tuple[np.ndarray, np.ndarray], goal_mask, validity, wrap: np.ndarray
-               ) -> LQRTry:
-    """`GoalLQR.run` for a gain whose input is held for ``gain.hold`` RK4 steps: u =
-    clip(u_e - K (x - x_e)) at the start of each hold, held by `propagate` (the planner's
-    own RK4, as an edge is re-simulated) for ``hold`` steps (fewer at ``max_steps``). Stops
-    as `run`: at the first state in the goal region ("reached"), at a state outside
-    ``box`` or not finite (dropped, "box"), when the Lyapunov value at the end of a hold
-    (the sampled loop's) exceeds the start's ("basin"), at ``max_steps`` ("timeout"); the
-    obstacle check then runs once on the states kept."""
-    low, high = box
-    sys = lqr.problem.system
-
-    def value(x: np.ndarray) -> tuple[float, np.ndarray]:
-        e = x - lqr.x_e
-        e[wrap] = np.mod(e[wrap] + np.pi, 2.0 * np.pi) - np.pi
-        return float(e @ gain.P @ e), e
-
-    v0, e = value(np.asarray(x0, dtype=np.float64))
-    states, inputs = [np.asarray(x0, dtype=np.float64)[None]], []
-    done, end = 0, "timeout"
-    while done < max_steps:
-        steps = min(gain.hold, max_steps - done)
-        u = np.minimum(np.maximum(lqr.u_e - gain.K @ e, lqr.u_low), lqr.u_high)
-        seg = propagate(sys, states[-1][-1], u, lqr.dt, steps, low, high)[1:]
-        inside = np.all((low <= seg) & (seg <= high), axis=1)
-        hits = np.flatnonzero(goal_mask(seg[: int(np.argmin(inside)) if not inside.all()
-                                            else len(seg)]))
-        if hits.size:
-            seg, end = seg[: hits[0] + 1], "reached"
-        elif not inside.all():
-            seg, end = seg[: int(np.argmin(inside))], "box"
-        states.append(seg)
-        inputs.append(np.repeat(u[None], len(seg), axis=0))
-        done += len(seg)
-        if end != "timeout":
-            break
-        v, e = value(seg[-1])
-        if v > v0:
-            end = "basin"
-            break
-    out = LQRTry(np.concatenate(states), np.concatenate(inputs) if inputs else
-                 np.empty((0, lqr.u_e.size)), end)
-    if validity and len(out.inputs) and not validity(out.states[1:]).all():
-        return LQRTry(out.states, out.inputs, "obstacle")
-    return out
-
-
-def held_gain(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, hold: int
-              ) -> Gain | None:
-    """The gain for the weights (Q, R) (per step dt) with the input held for ``hold``
-    steps: the discrete Riccati equation of the sampled system (A^hold, sum_i<hold A^i B)
-    with the weights hold Q, hold R; None where it has no stabilising solution."""
-    Ah, Bh, term = np.eye(len(A)), np.zeros_like(B), np.eye(len(A))
-    for _ in range(hold):
-        Bh = Bh + term @ B
-        term = term @ A
-    Ah = term
-    try:
-        K, P = _riccati(Ah, Bh, hold * Q, hold * R)
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(K))):
-        return None
-    rho = float(np.abs(np.linalg.eigvals(Ah - Bh @ K)).max())
-    return Gain(K, 0.5 * (P + P.T), rho, np.diag(R).copy(), hold) if rho < 1.0 else None
 
 
 def _closed_loop(system, x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps, low, high):
@@ -420,39 +238,11 @@ def bryson_weights(problem: PlanningProblem, dt: float, r_cost: np.ndarray
     return np.diag(dt / half_x**2), np.diag(dt * r_diag)
 
 
-def _riccati(A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """(K, P): the discrete Riccati solution P for (A, B, Q, R) and its gain."""
-    from scipy.linalg import solve_discrete_are  # (on first use)
-
-    with np.errstate(all="ignore"):
-        P = solve_discrete_are(A, B, Q, R)
-        K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
-    return K, P
-
-
-def ladder_weights(bryson_r: np.ndarray, cost_r: np.ndarray) -> list[np.ndarray]:
-    """The gentler gains' input weights (each (m,)): from Bryson's ``bryson_r`` (m,) towards
-    the running cost's ``cost_r`` (m,) (both at the step dt), geometrically, in rungs that
-    grow by at most ``LADDER_STEP``, the last the running cost's; only inputs the running
-    cost prices dearer than Bryson's rule move. Empty where none does."""
-    end = np.maximum(bryson_r, cost_r)
-    ratio = float(np.max(end / bryson_r))
-    if not (np.isfinite(ratio) and ratio > 1.0):
-        return []
-    rungs = int(np.ceil(np.log(ratio) / np.log(LADDER_STEP) - 1e-9))
-    return [bryson_r * (end / bryson_r) ** (k / rungs) for k in range(1, rungs + 1)]
-
-
-def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray | None = None,
-                   time_weight: float = 0.0, ladder: bool = False) -> GoalLQR | str:
+def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray | None = None
+                   ) -> GoalLQR | str:
     """The LQR connection for ``problem`` at the planner's step ``dt``, or why there is none
     (a one-line reason). ``input_weight`` (m, m) is the running cost's R, the weight of
-    inputs without finite limits (identity if not given), and with ``time_weight`` (w) what
-    prices the chains `GoalLQR.cheapest` compares; the gentler gains' input weights are
-    `ladder_weights` from Bryson's to dt R / w (an unstable or failed rung is left out),
-    solved only with ``ladder`` (the planner's LQR connection asks for it only while
-    `connections.LQR_LADDER` is on, off by default; docs/external_problems.md)."""
+    inputs without finite limits (identity if not given)."""
     sys = problem.system
     m = sys.n_inputs
     u_low, u_high = input_box(problem)
@@ -469,10 +259,14 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
         A, B = step_jacobians(sys, x_e, u_e, dt)
     if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
         return "the linearisation at the equilibrium is not finite"
-    cost_r = np.eye(m) if input_weight is None else np.asarray(input_weight, dtype=float)
-    Q, R = bryson_weights(problem, dt, np.diag(cost_r))
+    Q, R = bryson_weights(problem, dt, np.diag(np.eye(m) if input_weight is None
+                                               else input_weight))
     try:
-        K, P = _riccati(A, B, Q, R)
+        with np.errstate(all="ignore"):
+            from scipy.linalg import solve_discrete_are  # (on first use)
+
+            P = solve_discrete_are(A, B, Q, R)
+            K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return f"no LQR solution at the equilibrium ({exc})"
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(K))):
@@ -480,21 +274,4 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
     rho = float(np.abs(np.linalg.eigvals(A - B @ K)).max())
     if not rho < 1.0:
         return f"the LQR closed loop is unstable (spectral radius {rho:.4g})"
-    gentler = []
-    # the running cost w + u'Ru/2 per unit of w: input weight dt R / w beside Bryson's Q
-    per_w = time_weight if time_weight > 0 else 1.0
-    for r in ladder_weights(np.diag(R), dt * np.diag(cost_r) / per_w) if ladder else []:
-        try:
-            Kr, Pr = _riccati(A, B, Q, np.diag(r))
-        except (ValueError, np.linalg.LinAlgError):
-            continue
-        if not (np.all(np.isfinite(Pr)) and np.all(np.isfinite(Kr))):
-            continue
-        rho_r = float(np.abs(np.linalg.eigvals(A - B @ Kr)).max())
-        if rho_r < 1.0:
-            gain = Gain(Kr, 0.5 * (Pr + Pr.T), rho_r, r)
-            hold = int(HOLD_FRACTION * gain.fastest_time_constant(A, B, dt) / dt)
-            held = held_gain(A, B, Q, np.diag(r), hold) if hold > 1 else None
-            gentler.append(gain if held is None else replace(gain, held=held))
-    return GoalLQR(problem, float(dt), x_e, u_e, K, 0.5 * (P + P.T), u_low, u_high, rho,
-                   tuple(gentler), float(time_weight), cost_r)
+    return GoalLQR(problem, float(dt), x_e, u_e, K, 0.5 * (P + P.T), u_low, u_high, rho)
