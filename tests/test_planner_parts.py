@@ -164,6 +164,25 @@ def test_cost_to_come_by_hand():
                                   [0.0, 1.5, 2.0, 1.75, 5.75, 2.5, 6.75])
 
 
+def test_an_extremal_added_on_a_row_a_compiled_batch_wrote_has_no_control():
+    """A compiled random-control batch writes its draws' rows in place (`PlannerData.reserve`)
+    and may leave a row written but not kept (sparse_rrt's acrobot, seed 0: the row after
+    the first solve's last node). An extremal the anytime shortcuts then add on that row
+    had kept the row's held input: the plan file called it a control edge, and its replay
+    held that input for the extremal's 5.8 s (it ended 51 from the goal instead of 1.5)."""
+    from rrtcolearn.planning.tree import PlannerData
+
+    tree = PlannerData(np.zeros(2), 1, capacity=2)
+    tree.reserve(3)
+    tree.controls[1] = 0.59  # a batch's row, not kept (n_nodes stays 1)
+    costate, params = np.array([0.5, -1.0]), np.array([2.0])
+    node = tree.add(np.ones(2), 0, costate, params, 1.0, 0.7, np.zeros((2, 2)), 0.3)
+    assert node == 1 and np.isnan(tree.controls[1]).all() and tree.kind(1) == "learned"
+    node = tree.add(np.ones(2), 1, np.full(2, np.nan), np.full(1, np.nan), 1.0, 0.7,
+                    np.zeros((2, 2)), 0.3, control=np.array([-0.25]))
+    assert tree.controls[node].tolist() == [-0.25]
+
+
 @pytest.mark.parametrize("on", [False, True])
 def test_parent_cost_to_come_ranks_by_the_trees_cost_to_come(limited, monkeypatch, on):
     """With ``plan.parent_cost_to_come`` the learned steering ranks its candidates by J plus

@@ -62,8 +62,9 @@ class PlannerData:
         if self.n_nodes == self.states.shape[0]:
             self._grow()
         i = self.n_nodes
-        if control is not None:
-            self.controls[i] = control
+        # always written: a compiled batch writes its draws' rows in place, and a row it
+        # wrote but did not keep would otherwise hand its held input to this edge
+        self.controls[i] = np.nan if control is None else control
         self.states[i] = state
         self.parents[i] = parent
         self.costates[i] = costate
