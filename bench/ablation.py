@@ -248,16 +248,21 @@ def first_solution(planner, seed: int, limit: float) -> dict:
             "duration_by": p.extra.get("duration_by", {}) if p.solved else {}}
 
 
-def anytime_plan(planner, seed: int, budget: float):
-    """The plan of ``budget`` s of process CPU of anytime planning (restarts + shortcuts)."""
+def anytime_plan(planner, seed: int, budget: float, resolved: bool = True):
+    """The plan of ``budget`` s of process CPU of anytime planning (restarts + shortcuts),
+    as `pipeline.plan` plans it: the cheapest path its step resolves kept (``resolved``;
+    False: the cheapest path, as before `evaluate.step_check`)."""
     from rrtcolearn.anytime import solve_with_restarts
+    from rrtcolearn.evaluate import is_resolved
     from rrtcolearn.planning.improve import multiple_shooting, shortcut
     from rrtcolearn.planning.termination import TerminationCondition
 
     return solve_with_restarts(planner.solve, TerminationCondition(None, None, budget), seed,
                                improve=partial(shortcut, planner),
                                narrowest=planner.narrowest_control_scale(),
-                               first=partial(multiple_shooting, planner))
+                               first=partial(multiple_shooting, planner),
+                               accept=None if not resolved else partial(is_resolved,
+                                                                        planner.problem))
 
 
 def anytime(planner, seed: int, budget: float) -> dict:

@@ -1,7 +1,9 @@
 """Does the plan's step resolve its path? `evaluate.step_check` on the first solutions of
 bench/ablation.py's problems (the default planner, its models), or with ``--anytime S`` on
-the plans of S s of anytime planning: each path replayed from the start at the plan's step
-and at half of it (docs/formats.md, "Does the step resolve the path?").
+the plans of S s of anytime planning (as `pipeline.plan` plans: the cheapest path its step
+resolves, beside the cheapest path of a second run that does not ask): each path replayed
+from the start at the plan's step and at half of it (docs/formats.md, "Does the step
+resolve the path?").
 
     PYTHONPATH=src python bench/step_check.py [--models DIR] [--seeds 3] [--problems a,b]
         [--anytime S]
@@ -44,8 +46,16 @@ def main(argv: list[str] | None = None) -> list[dict]:
         planning = ablation.planning_problem(name, prob, case, model)
         planner = ablation.make_planner(planning, model, "default")
         for seed in range(args.seeds):
-            p = planner.solve(TerminationCondition(None, None, args.limit), seed) \
-                if args.anytime is None else ablation.anytime_plan(planner, seed, args.anytime)
+            if args.anytime is not None:  # the cheapest path, then the cheapest resolved
+                was = ablation.anytime_plan(planner, seed, args.anytime, resolved=False)
+                p = ablation.anytime_plan(planner, seed, args.anytime)
+                w = step_check(planning, was) if was.solved else None
+                print(f"{'':<20} {seed:>4} cheapest path: cost {was.path_cost:.4g}, "
+                      f"resolved {w and w['resolved']}; cheapest resolved: cost "
+                      f"{p.path_cost:.4g} ({p.path_cost / was.path_cost:.3g}x), not accepted "
+                      f"{p.extra['anytime'].get('not_accepted')}", flush=True)
+            else:
+                p = planner.solve(TerminationCondition(None, None, args.limit), seed)
             if not p.solved:
                 print(f"{name:<20} {seed:>4} unsolved")
                 continue

@@ -228,3 +228,36 @@ def test_the_first_improvement_has_an_allowance_of_its_own(pendulum):
     q, solved2, first_log2, improve_log2 = run()
     assert (solved2, first_log2, improve_log2) == (solved, first_log, improve_log)
     assert q.to_dict()["path"] == p.to_dict()["path"]
+
+
+def test_accept_keeps_the_cheapest_accepted_plan(pendulum):
+    """With ``accept`` the best is the cheapest solved plan it accepts, whatever cheaper
+    plans it turned down; where it accepts none, the cheapest plan (as without it). Checked
+    against the log of every solve (no improvement: the solves' own plans)."""
+    peer_solve = _random_rrt(pendulum)
+    costs: list[float] = []
+
+    def solve(termination, seed):
+        p = peer_solve(termination, seed)
+        if p.solved:
+            costs.append(p.path_cost)
+        return p
+
+    def run(accept):
+        costs.clear()
+        p = solve_with_restarts(solve, TerminationCondition(None, 20000), seed=2,
+                                accept=accept)
+        return p, list(costs)
+
+    plain, logged = run(None)
+    assert len(logged) >= 3 and plain.path_cost == min(logged)
+    # turn down the cheapest half: the best is the cheapest of the dearer half
+    cut = float(np.median(logged))
+    p, logged2 = run(lambda q: q.path_cost >= cut)
+    assert logged2 == logged  # the same solves: accept does not change them
+    assert p.path_cost == min(c for c in logged if c >= cut) > min(logged)
+    assert p.extra["anytime"]["not_accepted"] >= 1
+    assert "not_accepted" not in plain.extra["anytime"]
+    nothing, _ = run(lambda q: False)
+    assert nothing.path_cost == min(logged)
+    assert nothing.extra["anytime"]["not_accepted"] == len(logged)

@@ -107,7 +107,8 @@ def solve_with_restarts(solve: Callable[..., Plan],
                         narrowest: float = 1.0,
                         first: Callable[[Plan, Callable[[], bool]], Plan] | None = None,
                         solves: int | None = None, allowance: float = 1.0,
-                        in_steps: bool = False) -> Plan:
+                        in_steps: bool = False,
+                        accept: Callable[[Plan], bool] | None = None) -> Plan:
     """Call ``solve`` until ``termination``'s whole budget is spent, each solve after the
     first with a fresh child seed of ``seed``, each solved plan then passed through
     ``improve(plan, stop)`` if given (e.g. `planning.improve.shortcut`; ``stop()`` is true once
@@ -141,7 +142,14 @@ def solve_with_restarts(solve: Callable[..., Plan],
 
     A ``solve`` that takes ``query`` (`RRTCoLearn.solve`) is told the query's seed: its goal
     funnel is drawn from that seed's stream and built once for all the query's solves
-    (`planning.funnel.FunnelStream`; docs/anytime.md, "One funnel per query")."""
+    (`planning.funnel.FunnelStream`; docs/anytime.md, "One funnel per query").
+
+    ``accept(plan)``: whether a solved plan may be the best (`pipeline.plan`: its step
+    resolves it, `evaluate.step_check`). An accepted plan beats every plan not accepted,
+    the cheaper of two alike; asked only of a plan that would otherwise become the best.
+    ``extra["anytime"]["not_accepted"]`` counts the plans it turned down (``progress`` then
+    records the best's cost each time it changes, which may rise once from an unaccepted
+    plan to an accepted one)."""
     if solves is None and termination.time_limit is None and \
             termination.max_iterations is None and termination.cpu_time_limit is None:
         raise ValueError("an anytime plan needs a budget: a time, CPU time or iteration limit")
@@ -160,6 +168,23 @@ def solve_with_restarts(solve: Callable[..., Plan],
     solves_cpu, solves_its = 0.0, 0  # what all solves so far took
     scale, scales = 1.0, []  # the random controls' input box (1: the whole box)
     cheapest_solve = np.inf  # the cheapest path a solve found (before any improvement)
+    best_ok, turned_down = False, 0  # whether ``accept`` took the best; plans it did not
+
+    def better(q: Plan) -> bool:
+        """Whether the solved ``q`` replaces the best (``accept``'s verdict kept for it)."""
+        nonlocal best_ok, turned_down
+        if best is not None and best.solved and best_ok and q.path_cost >= best.path_cost:
+            return False
+        if best is not None and best.solved and accept is None and \
+                q.path_cost >= best.path_cost:
+            return False
+        ok = True if accept is None else bool(accept(q))
+        turned_down += not ok
+        if best is None or not best.solved or ok > best_ok or \
+                (ok == best_ok and q.path_cost < best.path_cost):
+            best_ok = ok
+            return True
+        return False
     while (solves is None or runs < solves) and \
             (left := _remaining(termination, iterations, cpu0)) is not None:
         child = seed if runs == 0 else int(children.spawn(1)[0].generate_state(1)[0])
@@ -180,7 +205,7 @@ def solve_with_restarts(solve: Callable[..., Plan],
         solves_its += max(1, p.iterations)
         wall += p.planning_time_s
         best_before = best.path_cost if best is not None and best.solved else np.inf
-        if p.solved and (best is None or not best.solved or p.path_cost < best.path_cost):
+        if p.solved and better(p):
             best = p
             progress.append([round(cpu, 6), p.path_cost])
         elif best is None:
@@ -195,7 +220,7 @@ def solve_with_restarts(solve: Callable[..., Plan],
         for step, record, run in ((first, first_record, new_best), (improve, record_, True)):
             if not (p.solved and step is not None and run):
                 continue
-            before = p.path_cost
+            before, unchanged = p.path_cost, p
             p, its, c, t = _improved(step, p,
                                      allowance * (record[1] + 1) / (record[0] + 1),
                                      termination, iterations, cpu0,
@@ -204,7 +229,7 @@ def solve_with_restarts(solve: Callable[..., Plan],
             iterations, cpu, wall = iterations + its, cpu + c, wall + t
             record[0] += 1
             record[1] += p.path_cost < before
-            if p.path_cost < best.path_cost:
+            if p is not unchanged and better(p):
                 best = p
                 progress.append([round(cpu, 6), p.path_cost])
     # a function's name, or a functools.partial's function's
@@ -215,6 +240,7 @@ def solve_with_restarts(solve: Callable[..., Plan],
                              **({"control_scales": scales} if narrowest < 1.0 else {}),
                              **({"first": {"tries": first_record[0], "gains": first_record[1]}}
                                 if first is not None else {}),
+                             **({"not_accepted": turned_down} if accept is not None else {}),
                              "iterations": iterations, "planning_cpu_s": round(cpu, 6),
                              "first_solution_cpu_s": progress[0][0] if progress else None,
                              "first_solution_cost": progress[0][1] if progress else None}

@@ -272,6 +272,12 @@ def step_check(problem, plan) -> dict:
             "resolved": bool(goal_gap < problem.goal_tolerance)}
 
 
+def is_resolved(problem, plan) -> bool:
+    """`step_check`'s verdict alone: anytime planning's ``accept``
+    (`anytime.solve_with_restarts`), so that it keeps the cheapest path its step resolves."""
+    return step_check(problem, plan)["resolved"]
+
+
 class PlanCheckError(ArtefactError, ValueError):
     """A plan (file) that is not what it claims (`check_plan`): a malformed field, or a path
     whose re-simulation disagrees with what the plan records. One line naming the field."""

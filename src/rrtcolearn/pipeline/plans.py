@@ -100,7 +100,8 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
     ``plan.anytime`` the whole limit is spent on restarts whose paths are shortcut, inside
     and to the goal (`anytime.solve_with_restarts`, `planning.improve.shortcut`), each new
     best path first by multiple shooting on an allowance of its own
-    (`planning.improve.multiple_shooting`); with ``plan.polish`` (and not anytime) the first
+    (`planning.improve.multiple_shooting`), the cheapest path its step resolves kept
+    (`evaluate.step_check`); with ``plan.polish`` (and not anytime) the first
     solution gets one such round (`POLISH_ALLOWANCE`), its raw and polished costs in
     ``extra["polish"]``."""
     cfg = config or model.config
@@ -115,6 +116,7 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
         from functools import partial
 
         from rrtcolearn.anytime import solve_with_restarts
+        from rrtcolearn.evaluate import is_resolved
         from rrtcolearn.planning.improve import multiple_shooting, shortcut
 
         polish = not cfg.plan.anytime
@@ -122,6 +124,7 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
                                      improve=partial(shortcut, planner),
                                      narrowest=planner.narrowest_control_scale(),
                                      first=partial(multiple_shooting, planner),
+                                     accept=partial(is_resolved, problem),
                                      **({"solves": 1, "allowance": POLISH_ALLOWANCE,
                                          "in_steps": True} if polish else {}))
         if polish:
