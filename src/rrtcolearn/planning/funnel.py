@@ -42,7 +42,9 @@ _FINAL_TOLERANCE = 1e-9  # ... and of the last: the forward solve starts from it
 class GoalFunnel:
     """States (M, n) on backward extremals from ``goal``, each with the index of its
     simulation (M,) and its time to go in RK4 steps (M,); ``goal_costates`` (S, n) are the
-    simulations' costates at the goal."""
+    simulations' costates at the goal. ``offset`` is the goal test's state-minus-goal; the
+    states' offsets are not kept (the index holds them scaled): of millions of states
+    (the acrobot's 2.8 million) they were a third of the funnel's memory."""
 
     system: System
     goal: np.ndarray
@@ -50,11 +52,17 @@ class GoalFunnel:
     simulation: np.ndarray
     steps: np.ndarray
     goal_costates: np.ndarray
-    offsets: np.ndarray
+    offset: Callable[[np.ndarray], np.ndarray]
     scale: np.ndarray
     index: cKDTree
     time_weight: float
     dt: float
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """The states' goal offsets (M, n), computed again (`offset` row by row: the same
+        values as at the build)."""
+        return self.offset(self.states) if len(self.states) else self.states
 
     @classmethod
     def build(cls, system: System, goal: np.ndarray, offset: Callable[[np.ndarray], np.ndarray],
@@ -128,11 +136,13 @@ class GoalFunnel:
         states = np.concatenate(kept_states) if kept_states else np.empty((0, n))
         sims = np.concatenate(kept_sims) if kept_sims else np.empty(0, np.int64)
         steps = np.concatenate(kept_steps) if kept_steps else np.empty(0, np.int64)
+        del kept_states, kept_sims, kept_steps  # (each array held once from here on)
         offsets = offset(states) if len(states) else states
         outside = np.einsum("ij,ij->i", offsets, offsets) > tolerance**2
-        states, sims, steps, offsets = states[outside], sims[outside], steps[outside], \
-            offsets[outside]
+        states, sims, steps = states[outside], sims[outside], steps[outside]
+        offsets = offsets[outside]
         scale = np.asarray(scale, dtype=np.float64)
+        offsets *= scale  # the index's points: the offsets scaled, in place
         from scipy.spatial import cKDTree  # (here: a plan's start-up does not import it)
 
         # split at the midpoint of the widest side, without the median's partial sorts, no
@@ -140,10 +150,9 @@ class GoalFunnel:
         # a faster build of the same points (0.5-0.7 s instead of 1.0-1.4 s for the 1.7-2.8
         # million states of the acrobot's, cart-pole's and pendulum's funnels), queries no
         # slower, the same neighbours and distances (an exact search either way)
-        index = cKDTree(offsets * scale, leafsize=32, balanced_tree=False,
-                        compact_nodes=False)
-        return cls(system, goal, states, sims.astype(np.int64), steps.astype(np.int64), lam,
-                   offsets, scale, index, float(time_weight), float(dt))
+        index = cKDTree(offsets, leafsize=32, balanced_tree=False, compact_nodes=False)
+        return cls(system, goal, states, sims.astype(np.int32), steps.astype(np.int32), lam,
+                   offset, scale, index, float(time_weight), float(dt))
 
     def __len__(self) -> int:
         return len(self.states)
@@ -165,8 +174,9 @@ class GoalFunnel:
         the continuation does not converge. The result is a first guess for a forward solve:
         its end is exact only up to the RK4 grid."""
         xb = self.states[j]
-        x = xb + (offset - self.offsets[j])  # the node, shifted to the funnel state's turn
-        lam, duration = self.goal_costates[self.simulation[j]], self.steps[j] * self.dt
+        # the node, shifted to the funnel state's turn
+        x = xb + (offset - self.offset(self.states[j : j + 1])[0])
+        lam, duration = self.goal_costates[self.simulation[j]], int(self.steps[j]) * self.dt
         done, step, sol = 0.0, _FIRST_STEP, None
         while done < 1.0:
             # continuation with step control: halve the step after a failed solve, grow it
