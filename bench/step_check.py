@@ -69,7 +69,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     print(f"{len(rows)} plans: {sum(not r['resolved'] for r in rows)} not resolved by their "
           f"step, {sum(r['goal_distance'] > r['tolerance'] for r in rows)} with the half "
           f"step's end outside the goal region, {sum(not r['valid'] for r in rows)} with a "
-          f"half step's state in an obstacle or out of bounds")
+          f"half step's state in an obstacle or out of bounds, "
+          f"{sum(not r['replays'] for r in rows)} not re-simulating to their own path")
     return rows
 
 

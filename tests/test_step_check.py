@@ -103,3 +103,18 @@ def test_pipeline_plan_records_the_check_of_a_pendulum_swing_up(paper_model):
     assert c["goal_distance"] == pytest.approx(np.linalg.norm(d), rel=1e-9)
     assert c["valid"] and c["resolved"] and c["gap"] < TOLERANCE
     assert "half_step_check" in plan_summary(p)
+
+
+def test_a_plan_whose_edge_is_not_what_was_integrated_is_caught(capsys):
+    """A path edge recorded with another held input than the one integrated (as a stale
+    row of the tree once made an extremal look like a control edge): the replay at the
+    plan's own step no longer ends on the path's last node, and the command line says so."""
+    problem, plan = _cartpole_swingup(0.01, 1)
+    assert step_check(problem, plan)["replays"]
+    node = plan.path_nodes[len(plan.path_nodes) // 2]
+    plan.tree.controls[node] = plan.tree.controls[node] + 1.0  # 1 N more than integrated
+    plan.extra["step_check"] = check = step_check(problem, plan)
+    assert not check["replays"]
+    assert "does NOT re-simulate to its own path" in plan_summary(plan)["half_step_check"]
+    warn_unresolved(plan)
+    assert "warning:" in capsys.readouterr().err

@@ -250,7 +250,8 @@ def step_check(problem, plan) -> dict:
     from the goal; with a goal function the difference of its two distances);
     ``goal_distance``: the half step's end from the goal region; ``valid``: the half step's
     states finite, in the state constraints and free of obstacles; ``resolved``:
-    ``goal_gap`` below the goal tolerance.
+    ``goal_gap`` below the goal tolerance; ``replays``: the replay at the plan's step ends
+    on the path's last node at the path's cost (to `PLAN_CHECK_RTOL`), as every plan must.
 
     A path ends at its first state inside the goal region, on its edge, and a planner's
     nodes graze obstacles, so any error can carry the half step's end out of the region
@@ -267,15 +268,24 @@ def step_check(problem, plan) -> dict:
         goal_gap = float(np.linalg.norm(offsets[0] - offsets[1]))
     else:
         goal_gap = abs(full["final_goal_distance"] - half["final_goal_distance"])
+    # the replay at the plan's own step is the plan's path, edge for edge: else the plan
+    # records edges that are not what it integrated (a bug, never a property of the problem)
+    edges = plan.edges()
+    end = np.asarray(edges[-1]["to"] if edges else problem.start, dtype=np.float64)
+    replays = bool(np.linalg.norm(ends[0] - end) <= PLAN_CHECK_RTOL * max(
+        1.0, float(np.linalg.norm(end))) and abs(full["path_cost"] - plan.path_cost)
+        <= PLAN_CHECK_RTOL * max(1.0, abs(plan.path_cost)))
     return {"gap": float(np.linalg.norm(ends[0] - ends[1])), "goal_gap": goal_gap,
             "goal_distance": half["final_goal_distance"], "valid": bool(half["valid"]),
-            "resolved": bool(goal_gap < problem.goal_tolerance)}
+            "resolved": bool(goal_gap < problem.goal_tolerance), "replays": replays}
 
 
 def is_resolved(problem, plan) -> bool:
-    """`step_check`'s verdict alone: anytime planning's ``accept``
-    (`anytime.solve_with_restarts`), so that it keeps the cheapest path its step resolves."""
-    return step_check(problem, plan)["resolved"]
+    """`step_check`'s verdict: anytime planning's ``accept``
+    (`anytime.solve_with_restarts`), so that it keeps the cheapest path its step resolves
+    (and that replays as it claims)."""
+    c = step_check(problem, plan)
+    return c["resolved"] and c["replays"]
 
 
 class PlanCheckError(ArtefactError, ValueError):

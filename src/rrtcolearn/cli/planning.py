@@ -112,6 +112,9 @@ def step_summary(p: Plan) -> str:
     where = (f"at dt/2 the end moves {c['goal_gap']:.2g} (goal tolerance {tol:.3g}) to "
              f"{c['goal_distance']:.3g} from the goal"
              + ("" if c["valid"] else "; a state grazes an obstacle or a state bound"))
+    if not c["replays"]:
+        return (f"the plan does NOT re-simulate to its own path at its step: an internal "
+                f"error, please report it ({where})")
     if c["resolved"]:
         return f"resolved: {where}"
     return (f"NOT resolved by the step dt = {p.dt:g}: {where}: the plan's integration error "
@@ -120,8 +123,10 @@ def step_summary(p: Plan) -> str:
 
 
 def warn_unresolved(p: Plan) -> None:
-    """A warning on stderr for a solved plan whose step does not resolve it."""
-    if "step_check" in p.extra and not p.extra["step_check"]["resolved"]:
+    """A warning on stderr for a solved plan whose step does not resolve it, or that does
+    not re-simulate to its own path."""
+    c = p.extra.get("step_check")
+    if c is not None and not (c["resolved"] and c["replays"]):
         console.print(f"[bold yellow]warning:[/] {printable(step_summary(p))}", highlight=False)
 
 
