@@ -174,10 +174,7 @@ def solve_with_restarts(solve: Callable[..., Plan],
         """Whether the solved ``q`` replaces the best (``accept``'s verdict kept for it)."""
         nonlocal best_ok, turned_down
         if best is not None and best.solved and best_ok and q.path_cost >= best.path_cost:
-            return False
-        if best is not None and best.solved and accept is None and \
-                q.path_cost >= best.path_cost:
-            return False
+            return False  # (without ``accept`` every plan is accepted)
         ok = True if accept is None else bool(accept(q))
         turned_down += not ok
         if best is None or not best.solved or ok > best_ok or \
