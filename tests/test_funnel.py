@@ -39,6 +39,8 @@ def test_funnel_states_lie_on_extremals_that_end_at_the_goal(funnel):
         # ... and forward from there, with the costate found there, the goal again
         ahead = di_rk4(np.r_[back[:4], 0.0], 1.0, DT, int(funnel.steps[j]))
         np.testing.assert_allclose(ahead[:2], GOAL, atol=1e-8)
+        # its cost to go (kept in float32): the running cost of that way to the goal
+        assert funnel.cost_to_go[j] == pytest.approx(ahead[4], rel=1e-6)
     # only states outside the goal region whose way to the goal stays inside the box
     assert (np.linalg.norm(funnel.offsets, axis=1) > 0.1).all()
     v = funnel.states[:, 1]

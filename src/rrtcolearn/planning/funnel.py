@@ -51,6 +51,7 @@ class GoalFunnel:
     states: np.ndarray
     simulation: np.ndarray
     steps: np.ndarray
+    cost_to_go: np.ndarray  # (M,) float32: the extremal's cost from the state to the goal
     goal_costates: np.ndarray
     offset: Callable[[np.ndarray], np.ndarray]
     scale: np.ndarray
@@ -116,14 +117,15 @@ class GoalFunnel:
         ball[bounded] = 1.0 / (hi - lo)
         radius = float(np.sqrt(np.sum((np.maximum(hi - goal[bounded], goal[bounded] - lo)
                                        * ball[bounded]) ** 2)))
-        kept_states, kept_sims, kept_steps = [], [], []
+        kept_states, kept_sims, kept_steps, kept_costs = [], [], [], []
         for first in range(0, len(lam), _CHUNK):
             chunk = lam[first : first + _CHUNK]
             z0 = np.zeros((len(chunk), 2 * n + 1))
             z0[:, :n] = goal
             z0[:, n : 2 * n] = chunk
-            states, _, lengths, _ = rollout_batch(system, z0, time_weight, -dt, max_steps,
-                                                  max_cost, radius, n, scale=ball)
+            states, costs, lengths, _ = rollout_batch(system, z0, time_weight, -dt,
+                                                      max_steps, max_cost, radius, n,
+                                                      scale=ball)
             xb = states[:, :, bounded]
             # a state counts only if the whole way from it to the goal stays in the box
             inside = np.logical_and.accumulate(((xb >= lo) & (xb <= hi)).all(axis=2), axis=1)
@@ -133,13 +135,16 @@ class GoalFunnel:
             kept_states.append(states[sims, steps])
             kept_sims.append(sims + first)
             kept_steps.append(steps + 1)
+            kept_costs.append(np.abs(costs[sims, steps]).astype(np.float32))
         states = np.concatenate(kept_states) if kept_states else np.empty((0, n))
         sims = np.concatenate(kept_sims) if kept_sims else np.empty(0, np.int64)
         steps = np.concatenate(kept_steps) if kept_steps else np.empty(0, np.int64)
-        del kept_states, kept_sims, kept_steps  # (each array held once from here on)
+        to_go = np.concatenate(kept_costs) if kept_costs else np.empty(0, np.float32)
+        del kept_states, kept_sims, kept_steps, kept_costs  # (each held once from here on)
         offsets = offset(states) if len(states) else states
         outside = np.einsum("ij,ij->i", offsets, offsets) > tolerance**2
-        states, sims, steps = states[outside], sims[outside], steps[outside]
+        states, sims, steps, to_go = states[outside], sims[outside], steps[outside], \
+            to_go[outside]
         offsets = offsets[outside]
         scale = np.asarray(scale, dtype=np.float64)
         offsets *= scale  # the index's points: the offsets scaled, in place
@@ -151,8 +156,8 @@ class GoalFunnel:
         # million states of the acrobot's, cart-pole's and pendulum's funnels), queries no
         # slower, the same neighbours and distances (an exact search either way)
         index = cKDTree(offsets, leafsize=32, balanced_tree=False, compact_nodes=False)
-        return cls(system, goal, states, sims.astype(np.int32), steps.astype(np.int32), lam,
-                   offset, scale, index, float(time_weight), float(dt))
+        return cls(system, goal, states, sims.astype(np.int32), steps.astype(np.int32), to_go,
+                   lam, offset, scale, index, float(time_weight), float(dt))
 
     def __len__(self) -> int:
         return len(self.states)
