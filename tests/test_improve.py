@@ -226,9 +226,10 @@ def test_a_long_paths_pairwise_search_obeys_stop(paper_model):
     from rrtcolearn.planning import improve
 
     planner = swingup_planner(paper_model)
+    first = first_solution(planner, 3)
     counting = _CountingModel(planner.model)
     planner.model = counting
-    p = _long_path(planner, first_solution(planner, 3), 3000)
+    p = _long_path(planner, first, 3000)
     q = improve.interior_shortcuts(planner, p, stop=lambda: counting.calls > 0)
     assert counting.calls == 1 and counting.rows == improve.PAIR_BLOCK
     assert q.extra["interior"]["stretches"] == 0 and q.path_nodes == p.path_nodes

@@ -39,10 +39,14 @@ from tests.tree_cases import CASES, fit_model, plan_case, summary, tree_hash
 # recorded again when the funnel connection came to try first the node whose path would cost
 # least (cost to come plus its funnel state's cost to go), then the nearest: it connects at
 # iteration 331 from a node whose path costs 1 321 (before: at 426, 1 370); the pendulum
-# cases' trees are unchanged (pendulum_auto's cheapest node fails to steer, its nearest connects)
+# cases' trees are unchanged (pendulum_auto's cheapest node fails to steer, its nearest connects);
+# pendulum_auto recorded again when a solve that reached the goal came to shoot at it from the
+# nodes cheapest by cost-to-come + J (`plan.goal_parent_tries`, `connections.cheaper_goal_edge`):
+# its tree is the one before (c6d61fc847b86080 with the setting at 0) plus one shooting edge
+# into the goal, the path 8.02 -> 6.80; the other cases' shots found nothing cheaper
 EXPECTED = {
     "pendulum": ("a989e01885f8ff7a", {"connection": "funnel", "funnel_states": 26350}),
-    "pendulum_auto": ("c6d61fc847b86080", {"connection": "funnel",
+    "pendulum_auto": ("ad2ebf758d0ce227", {"connection": "funnel",
                                            "switched": {"lqr": 851, "shooting": 851,
                                                         "funnel": 851}}),
     "pendulum_u1": ("3319d1712788195c", {"connection": "lqr",

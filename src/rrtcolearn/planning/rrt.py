@@ -22,6 +22,7 @@ from rrtcolearn.planning.connections import (
     FunnelConnection,
     LQRConnection,
     ShootingConnection,
+    cheaper_goal_edge,
 )
 from rrtcolearn.planning.contracts import (
     OUTCOMES,
@@ -69,6 +70,7 @@ class Solve:
     schedule: Schedule
     connections: dict[str, Connection | None]
     funnel: FunnelStream
+    goal_parent: dict | None = None  # choose-parent for the goal's record (`_cheaper_goal`)
 
 
 class RRTCoLearn:
@@ -174,7 +176,27 @@ class RRTCoLearn:
         if controls is not None and controls.pending >= 0:
             # the last iteration's expansion, left to a compiled batch
             controls.run_batch(rng, tree, progress, 0)
+        if progress.goal_node > 0 and s.goal_parent_tries and self.model is not None \
+                and sys.params_from_costate is not None:
+            self._cheaper_goal(run, termination)
         return self._result(run, time.thread_time() - cpu0, termination.elapsed())
+
+    def _cheaper_goal(self, run: Solve, termination: TerminationCondition) -> None:
+        """Choose-parent for the goal once the solve reached it
+        (`connections.cheaper_goal_edge`): the cheaper path's goal edge (U's guess, or a
+        shooting extremal from it) added below its node and made the goal node; the record
+        in ``run.goal_parent``."""
+        progress, tree = run.progress, run.tree
+        found, run.goal_parent = cheaper_goal_edge(
+            self.propagator, self.model, tree, progress.goal_node,
+            self.settings.goal_parent_tries,
+            lambda: termination(0))  # its time limits: the iterations are spent
+        if found is not None:
+            parent, edge, kind = found
+            node = tree.add(parent, edge)
+            if kind != "learned":  # (an extremal's kind unless recorded)
+                tree.data.made_by[node] = kind
+            progress.goal_node = node
 
     def narrowest_control_scale(self) -> float:
         """The least ``control_scale`` anytime planning narrows random controls to
@@ -346,6 +368,7 @@ class RRTCoLearn:
                    **({"connections_switched_on": switched} if switched else {}),
                    "outcomes": progress.outcomes, "stalled": progress.stalled,
                    **({"edges_by": progress.edges_by} if run.schedule.controls else {}),
+                   **({"goal_parent": run.goal_parent} if run.goal_parent else {}),
                    **({} if diagnosis is None else {"diagnosis": diagnosis})},
         )
         plan.extra["duration_by"] = plan.duration_by

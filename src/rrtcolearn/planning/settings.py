@@ -68,6 +68,9 @@ class PlannerSettings:
     # aimed (`learned.LearnedSteering.refine`); 0 off
     refine_iterations: int = _default(PlanConfig, "refine_iterations")
     parent_cost_to_come: bool = _default(PlanConfig, "parent_cost_to_come")
+    # shots at the goal from the cheapest nodes by cost-to-come + J once a solve reached it
+    # (`connections.cheaper_goal_edge`); 0 off
+    goal_parent_tries: int = _default(PlanConfig, "goal_parent_tries")
     # learned draws dearer than this multiple of J are passed over
     # (`learned.LearnedSteering.propose`); 0 off; "data": from the data
     # (`learned.data_cost_ratio`)

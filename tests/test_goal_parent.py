@@ -1,0 +1,93 @@
+"""Choose-parent for the goal (`connections.cheaper_goal_edge`, ``plan.goal_parent_tries``):
+once a solve reaches the goal it shoots at the goal from the nodes with the least
+cost-to-come plus J and keeps the cheapest path. Checked against the same solve with it off
+(the tree must be that tree plus the one goal edge) and against a hand RK4 of the pendulum's
+state+costate ODEs and a hand formula for its Hamiltonian."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from tests.conftest import pendulum_edge
+from tests.tree_cases import CASES, fit_model
+
+from rrtcolearn import evaluate, pipeline
+from rrtcolearn.planning.rrt import RRTCoLearn
+from rrtcolearn.planning.termination import TerminationCondition
+
+_CASES = {c.name: c for c in CASES}
+TOLERANCE = 0.1
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    return fit_model(_CASES["pendulum"], tmp_path_factory.mktemp("goal_parent") / "pendulum")
+
+
+def _planner(model, tries: int) -> RRTCoLearn:
+    cfg = model.config
+    problem = pipeline.make_problem(model.system, cfg, [-np.pi, 0.0], [0.0, 0.0], TOLERANCE)
+    return RRTCoLearn(problem, model.functions,
+                      replace(model.planner_settings(cfg), goal_parent_tries=tries))
+
+
+def _hamiltonian(x: np.ndarray, lam: np.ndarray, w: float) -> float:
+    """H* of theta'' = sin(theta) + u at cost w + u^2/2, u = -lambda_omega, by hand."""
+    u = -lam[1]
+    return w + 0.5 * u * u + lam[0] * x[1] + lam[1] * (np.sin(x[0]) + u)
+
+
+def test_the_cheaper_goal_edge_is_the_only_change_and_replays_by_hand(model):
+    on, off = _planner(model, 4), _planner(model, 0)
+    w, dt = on.settings.time_weight, on.settings.dt
+    improved = 0
+    for seed in range(10):
+        p = on.solve(TerminationCondition(None, 5000), seed)
+        q = off.solve(TerminationCondition(None, 5000), seed)
+        assert p.solved and q.solved
+        assert "goal_parent" not in q.extra  # off: the paper's planner
+        n = q.tree.n_nodes
+        # the same tree, grown by the same iterations, and at most the one goal edge more
+        assert p.iterations == q.iterations and p.tree.n_nodes in (n, n + 1)
+        for a in ("states", "parents", "costs", "durations"):
+            assert np.array_equal(getattr(p.tree, a)[:n], getattr(q.tree, a)[:n])
+        record = p.extra["goal_parent"]
+        assert record["cost_before"] == pytest.approx(q.path_cost, rel=1e-12)
+        assert record["cost"] == pytest.approx(p.path_cost, rel=1e-12)
+        assert 0 <= record["tries"] <= 4
+        if p.tree.n_nodes == n:
+            assert p.path_nodes == q.path_nodes
+            continue
+        improved += 1
+        assert p.path_cost < q.path_cost
+        assert p.path_nodes[-1] == n and p.path_nodes[:-1] == p.tree.path_to(p.path_nodes[-2])
+        # the new goal edge, re-simulated by hand from its costate: it ends in the goal
+        # region, at its recorded cost, and starts on H* = 0 (free final time)
+        e = p.to_dict()["path"][-1]
+        assert e["control"] is None and p.tree.kind(n) in ("learned", "shooting")
+        states, _, cost = pendulum_edge(e, w, dt)
+        gap = states[-1] - np.array([0.0, 0.0])
+        gap[0] = np.mod(gap[0] + np.pi, 2 * np.pi) - np.pi
+        assert np.linalg.norm(gap) <= TOLERANCE
+        assert cost == pytest.approx(e["cost"], rel=1e-9)
+        assert _hamiltonian(np.array(e["from"]), np.array(e["costate"]), w) == \
+            pytest.approx(0.0, abs=1e-6)
+        # the path's cost is its edges' sum, and the plan replays to it
+        assert sum(x["cost"] for x in p.to_dict()["path"]) == pytest.approx(p.path_cost)
+        assert evaluate.step_check(on.problem, p)["replays"]
+    assert improved >= 3  # the pendulum: most first paths have a cheaper goal edge
+
+
+def test_more_tries_never_cost_more(model):
+    """The candidates are tried in one order and the cheapest path is kept: each allowance's
+    path costs no more than a smaller one's, on the same tree."""
+    costs = {}
+    for tries in (0, 1, 4, 100):
+        planner = _planner(model, tries)
+        costs[tries] = [planner.solve(TerminationCondition(None, 5000), seed).path_cost
+                        for seed in range(6)]
+    for a, b in ((0, 1), (1, 4), (4, 100)):
+        assert all(y <= x + 1e-12 for x, y in zip(costs[a], costs[b], strict=True))
+    assert sum(costs[100]) < sum(costs[0])
