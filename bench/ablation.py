@@ -35,7 +35,7 @@ settings resumes from it), the table is printed last.
 
     PYTHONPATH=src python bench/ablation.py [--models DIR] [--out FILE] [--seeds 5]
         [--anytime-seeds 3] [--limit 60] [--anytime 10] [--problems a,b] [--modes a,b]
-        [--parent-cost-to-come]
+        [--set plan_setting=value ...]
     python bench/ablation.py --table docs/ablation.json [--versus BASE.json]
 
 ``--versus BASE.json`` also prints the default mode side by side with another results file
@@ -213,15 +213,15 @@ def optimum(problem: Problem, planning, model) -> dict:
                      f"{s['interval_error']:.1g}")}
 
 
-def make_planner(planning, model, mode: str, parent_cost_to_come: bool = False):
+def make_planner(planning, model, mode: str, overrides: dict | None = None):
     """The mode's planner, or None where the mode does not exist for the problem;
-    ``parent_cost_to_come``: that plan setting on (`PlannerSettings`)."""
+    ``overrides``: planner settings set in every mode (`PlannerSettings` field -> value)."""
     from rrtcolearn.errors import ConfigError
     from rrtcolearn.planning.rrt import RRTCoLearn
 
     settings = model.planner_settings()
-    if parent_cost_to_come:
-        settings = replace(settings, parent_cost_to_come=True)
+    if overrides:
+        settings = replace(settings, **overrides)
     if mode == "learned":
         return RRTCoLearn(planning, model.functions, replace(settings, control_edges=False))
     if mode == "random":
@@ -285,8 +285,9 @@ def _write_json(path: Path, data) -> None:
 def run(args) -> dict:
     settings = {"seeds": args.seeds, "anytime_seeds": args.anytime_seeds,
                 "limit": args.limit, "anytime": args.anytime}
-    if args.parent_cost_to_come:  # (absent when off: older results files resume)
-        settings["parent_cost_to_come"] = True
+    overrides = _overrides(args.set)
+    if overrides:  # (absent without: older results files resume)
+        settings["set"] = overrides
     results = {"settings": settings, "problems": {}}
     if args.out.exists():
         old = json.loads(args.out.read_text())
@@ -303,7 +304,7 @@ def run(args) -> dict:
             entry["optimum"] = optimum(problem, planning, model)
             print(f"{name}: optimum {entry['optimum']}", flush=True)
         for mode in args.modes.split(","):
-            planner = make_planner(planning, model, mode, args.parent_cost_to_come)
+            planner = make_planner(planning, model, mode, overrides)
             rows = entry["modes"].setdefault(mode, {"first": {}, "anytime": {}})
             if planner is None:
                 rows["n/a"] = "no input box: random controls have nothing to draw from"
@@ -326,6 +327,27 @@ def run(args) -> dict:
                     _write_json(args.out, results)
         _write_json(args.out, results)
     return results
+
+
+def _overrides(pairs: list[str]) -> dict:
+    """``--set`` pairs as {planner setting: value}: an unknown setting or a value that is
+    not JSON is refused."""
+    from dataclasses import fields
+
+    from rrtcolearn.planning.settings import PlannerSettings
+
+    known = {f.name for f in fields(PlannerSettings)}
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or key not in known:
+            raise SystemExit(f"--set {pair!r}: expected SETTING=VALUE with a planner setting "
+                             f"({', '.join(sorted(known))})")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError as e:
+            raise SystemExit(f"--set {pair!r}: the value is not JSON ({e})") from None
+    return out
 
 
 def _median(values) -> float:
@@ -439,8 +461,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--anytime", type=float, default=10.0, help="process CPU s per query")
     ap.add_argument("--problems", default=",".join(PROBLEMS))
     ap.add_argument("--modes", default=",".join(MODES))
-    ap.add_argument("--parent-cost-to-come", action="store_true",
-                    help="plan.parent_cost_to_come on in every mode")
+    ap.add_argument("--set", action="append", default=[], metavar="SETTING=VALUE",
+                    help="a planner setting in every mode, its value as JSON (e.g. "
+                         "parent_cost_to_come=true, goal_parent_tries=0); repeatable")
     ap.add_argument("--table", type=Path, default=None, metavar="JSON",
                     help="print the tables of a results file (docs/ablation.json); run nothing")
     ap.add_argument("--versus", type=Path, default=None, metavar="JSON",
