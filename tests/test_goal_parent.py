@@ -14,6 +14,7 @@ from tests.conftest import pendulum_edge
 from tests.tree_cases import CASES, fit_model
 
 from rrtcolearn import evaluate, pipeline
+from rrtcolearn.cli.planning import plan_summary
 from rrtcolearn.planning.rrt import RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
 
@@ -62,6 +63,7 @@ def test_the_cheaper_goal_edge_is_the_only_change_and_replays_by_hand(model):
             continue
         improved += 1
         assert p.path_cost < q.path_cost
+        assert f"{q.path_cost:.4g} -> {p.path_cost:.4g}" in plan_summary(p)["goal_parent"]
         assert p.path_nodes[-1] == n and p.path_nodes[:-1] == p.tree.path_to(p.path_nodes[-2])
         # the new goal edge, re-simulated by hand from its costate: it ends in the goal
         # region, at its recorded cost, and starts on H* = 0 (free final time)

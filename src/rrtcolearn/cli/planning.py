@@ -100,9 +100,19 @@ def plan_summary(p: Plan) -> dict:
             **({"switched_on_at_iteration": ", ".join(
                 f"{k} {v}" for k, v in p.extra["connections_switched_on"].items())}
                if "connections_switched_on" in p.extra else {}),
+            **({"goal_parent": _goal_parent_summary(p.extra["goal_parent"])}
+               if "goal_parent" in p.extra else {}),
             **(_anytime_summary(p.extra["anytime"]) if "anytime" in p.extra else {}),
             **(_polish_summary(p.extra["polish"]) if "polish" in p.extra else {}),
             **({"half_step_check": step_summary(p)} if "step_check" in p.extra else {})}
+
+
+def _goal_parent_summary(r: dict) -> str:
+    """Choose-parent for the goal in words (`connections.cheaper_goal_edge`'s record)."""
+    if r["cost"] < r["cost_before"]:
+        return (f"{r['tries']} nodes tried: path cost {r['cost_before']:.4g} -> "
+                f"{r['cost']:.4g} by a cheaper goal edge")
+    return f"{r['tries']} nodes tried: none gave a cheaper goal edge"
 
 
 def step_summary(p: Plan) -> str:
