@@ -359,7 +359,8 @@ class PlanConfig(_Section):
         "at most this many nodes whose cost-to-come plus the learned J to the goal is below "
         "the path's cost (least first, V-valid, from U's guess), keeping the cheapest path "
         "(RRT*'s choose-parent for the goal); 0: off, the paper's planner. Pendulum first "
-        "cost 2.5x -> 1.6x the optimum at about 1.2x the CPU (docs/ablation.md)")
+        "cost 2.31x -> 1.53x the optimum (median, 20 seeds) at 1.04-1.08x the CPU per "
+        "seed (docs/ablation.md)")
     max_candidates: int | None = Field(
         32, ge=1, description="query J for only this many nodes nearest the target "
         "(weighted distance, from the tree's nearest-neighbour index), so an iteration's "
