@@ -93,3 +93,30 @@ def test_more_tries_never_cost_more(model):
     for a, b in ((0, 1), (1, 4), (4, 100)):
         assert all(y <= x + 1e-12 for x, y in zip(costs[a], costs[b], strict=True))
     assert sum(costs[100]) < sum(costs[0])
+
+
+def test_the_cheaper_goal_edge_keeps_out_of_an_obstacle(model):
+    """A disc in (theta, omega) beside the swing-up's approach to the upright: every state of
+    each new goal edge, re-simulated by hand, lies outside it."""
+    centre, radius = np.array([-0.6, 1.0]), 0.4
+
+    def outside(x: np.ndarray) -> np.ndarray:
+        th = np.mod(x[:, 0] + np.pi, 2 * np.pi) - np.pi
+        return (th - centre[0]) ** 2 + (x[:, 1] - centre[1]) ** 2 > radius**2
+
+    cfg = model.config
+    problem = pipeline.make_problem(model.system, cfg, [-np.pi, 0.0], [0.0, 0.0], TOLERANCE,
+                                    is_valid=outside)
+    planner = RRTCoLearn(problem, model.functions, model.planner_settings(cfg))
+    w, dt = planner.settings.time_weight, planner.settings.dt
+    improved = 0
+    for seed in range(10):
+        p = planner.solve(TerminationCondition(None, 5000), seed)
+        record = p.extra["goal_parent"]
+        if not p.solved or record["cost"] >= record["cost_before"]:
+            continue
+        improved += 1
+        for e in p.to_dict()["path"]:
+            states, _, _ = pendulum_edge(e, w, dt)
+            assert outside(states).all()
+    assert improved >= 2
