@@ -120,3 +120,25 @@ def test_the_cheaper_goal_edge_keeps_out_of_an_obstacle(model):
             states, _, _ = pendulum_edge(e, w, dt)
             assert outside(states).all()
     assert improved >= 2
+
+
+def test_the_cheaper_goal_edge_keeps_within_a_torque_limit(model):
+    """Under |u| <= 2 by truncation (edges whose input breaks it are rejected): every input
+    of each improved path, re-simulated by hand, is within the limit. (At |u| <= 1 every
+    shot of this unbounded model breaks the limit: 0 of 30 seeds improved.)"""
+    cfg = model.config
+    problem = pipeline.make_problem(model.system, cfg, [-np.pi, 0.0], [0.0, 0.0], TOLERANCE,
+                                    u_max=2.0)
+    planner = RRTCoLearn(problem, model.functions, model.planner_settings(cfg))
+    w, dt = planner.settings.time_weight, planner.settings.dt
+    improved = 0
+    for seed in range(10):
+        p = planner.solve(TerminationCondition(None, 5000), seed)
+        record = p.extra.get("goal_parent")
+        if not p.solved or record is None or record["cost"] >= record["cost_before"]:
+            continue
+        improved += 1
+        for e in p.to_dict()["path"]:
+            _, inputs, _ = pendulum_edge(e, w, dt)
+            assert np.abs(inputs).max() <= 2.0 + 1e-9
+    assert improved >= 2
