@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 from tests import references as ref
 from tests.conftest import pendulum_edge
-from tests.swingup import GOAL, TOLERANCE, plan_swingup
+from tests.swingup import GOAL, START, TOLERANCE, plan_swingup
 
+from rrtcolearn import pipeline
 from rrtcolearn.cli.planning import plan_summary, warn_unresolved
+from rrtcolearn.config import paper_config
 from rrtcolearn.evaluate import step_check
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.rrt import RRTCoLearn
@@ -118,3 +120,27 @@ def test_a_plan_whose_edge_is_not_what_was_integrated_is_caught(capsys):
     assert "does NOT re-simulate to its own path" in plan_summary(plan)["half_step_check"]
     warn_unresolved(plan)
     assert "warning:" in capsys.readouterr().err
+
+
+def test_an_anytime_plan_replays_each_path_once(paper_model, monkeypatch):
+    """Anytime planning asks `step_check` for its verdict on each new best path, and the
+    plan's record is that verdict's check, not a second replay: no path is checked twice,
+    and the record equals a fresh check of the plan kept."""
+    from rrtcolearn import evaluate
+
+    seen = []
+    real = evaluate.step_check
+
+    def counting(problem, plan):
+        seen.append((id(plan.tree), tuple(plan.path_nodes)))
+        return real(problem, plan)
+
+    monkeypatch.setattr(evaluate, "step_check", counting)
+    cfg = paper_config(plan={"anytime": True})
+    p = pipeline.plan(paper_model, list(START), list(GOAL), TOLERANCE, seed=2, config=cfg,
+                      time_limit=None, max_iterations=3000)
+    assert p.solved and seen and len(seen) == len(set(seen))
+    assert (id(p.tree), tuple(p.path_nodes)) in seen
+    problem = pipeline.make_problem(paper_model.system, cfg, list(START), list(GOAL),
+                                    TOLERANCE)
+    assert p.extra["step_check"] == real(problem, p)

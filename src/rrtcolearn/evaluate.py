@@ -284,8 +284,31 @@ def is_resolved(problem, plan) -> bool:
     """`step_check`'s verdict: anytime planning's ``accept``
     (`anytime.solve_with_restarts`), so that it keeps the cheapest path its step resolves
     (and that replays as it claims)."""
-    c = step_check(problem, plan)
-    return c["resolved"] and c["replays"]
+    return StepChecks(problem)(plan)
+
+
+class StepChecks:
+    """`step_check` for anytime planning's ``accept`` (`is_resolved`'s verdict) and for the
+    plan's record alike, each path replayed once: the last plan checked is remembered by its
+    tree and path (a tree's nodes never change once added), so recording the plan anytime
+    planning kept does not replay it again (`pipeline.plan`)."""
+
+    def __init__(self, problem):
+        self.problem = problem
+        self._last: tuple | None = None  # (tree, path nodes, check)
+
+    def __call__(self, plan) -> bool:
+        c = self.check(plan)
+        return c["resolved"] and c["replays"]
+
+    def check(self, plan) -> dict:
+        """`step_check` of ``plan``, replayed only if it is not the last plan checked."""
+        last = self._last
+        if last is not None and last[0] is plan.tree and last[1] == list(plan.path_nodes):
+            return last[2]
+        c = step_check(self.problem, plan)
+        self._last = (plan.tree, list(plan.path_nodes), c)
+        return c
 
 
 class PlanCheckError(ArtefactError, ValueError):

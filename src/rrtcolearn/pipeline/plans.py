@@ -12,6 +12,7 @@ from rrtcolearn import __version__
 from rrtcolearn.config import Config, plan_obstacles, validate
 from rrtcolearn.data.store import read_checked_json, write_checked_json
 from rrtcolearn.errors import ConfigError
+from rrtcolearn.evaluate import StepChecks
 from rrtcolearn.pipeline.configure import recorded_system
 from rrtcolearn.pipeline.model import FittedModel
 from rrtcolearn.planning.problem import PlanningProblem, is_own_limit
@@ -110,13 +111,15 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
                            goal_sampler=goal_sampler)
     planner = RRTCoLearn(problem, model.functions, model.planner_settings(config))
     termination = TerminationCondition(time_limit, max_iterations)
+    # the plan's step against half of it (`evaluate.step_check`): whether the step resolves
+    # the path, anytime planning's verdict and the plan's record, each path replayed once
+    checks = StepChecks(problem)
     if cfg.plan.anytime or cfg.plan.polish:
         # anytime: the whole budget, restarts, each path shortcut, the cheapest kept;
         # polish: the first solve and its one improvement round only
         from functools import partial
 
         from rrtcolearn.anytime import solve_with_restarts
-        from rrtcolearn.evaluate import is_resolved
         from rrtcolearn.planning.improve import multiple_shooting, shortcut
 
         polish = not cfg.plan.anytime
@@ -124,19 +127,15 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
                                      improve=partial(shortcut, planner),
                                      narrowest=planner.narrowest_control_scale(),
                                      first=partial(multiple_shooting, planner),
-                                     accept=partial(is_resolved, problem),
+                                     accept=checks,
                                      **({"solves": 1, "allowance": POLISH_ALLOWANCE,
                                          "in_steps": True} if polish else {}))
         if polish:
             result.extra["polish"] = _polish_record(result)
     else:
         result = planner.solve(termination, seed)
-    if result.solved:
-        # the plan's step against half of it (`evaluate.step_check`): whether the step
-        # resolves the path, reported and warned about, never silently trusted
-        from rrtcolearn.evaluate import step_check
-
-        result.extra["step_check"] = step_check(problem, result)
+    if result.solved:  # reported and warned about, never silently trusted
+        result.extra["step_check"] = checks.check(result)
     result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None
     result.extra["config"] = cfg.model_dump(mode="json")
     return result
