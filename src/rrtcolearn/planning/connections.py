@@ -76,11 +76,9 @@ def cheaper_goal_edge(propagator: Propagator, model: LearnedFunctions, tree: Gro
     wd = prob.goal_residual(states) * tree.weight
     near = np.flatnonzero((come < best)
                           & (np.einsum("ij,ij->i", wd, wd) <= s.connect_reach**2))
-    offset = prob.goal_offset(states[near])
     if near.size == 0 or tries <= 0:
         return None, record
-    shift = tree.shifts[near]
-    query = np.concatenate([states[near] + shift, states[near] - offset + shift], axis=1)
+    query = goal_query(states[near], tree.shifts[near], prob.goal_offset(states[near]))
     rows, cost, neighbours = model.query_valid(query)
     total = come[near[rows]] + cost
     n = states.shape[1]

@@ -92,9 +92,10 @@ def _truncnorm_vec(rng: np.random.Generator, mean: np.ndarray, sigma: float, lo:
 
 
 def goal_query(x0: np.ndarray, shift: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """The learning query (1, 2n) from ``x0`` to the goal: both ends shifted by whole turns
-    (``shift``) into the box, the goal as ``x0 - offset`` (angles the short way)."""
-    return np.concatenate([x0 + shift, x0 - offset + shift])[None]
+    """The learning queries (N, 2n) from states ``x0`` (N, n), or (1, 2n) from one (n,), to
+    the goal: both ends shifted by whole turns (``shift``) into the box, the goal as
+    ``x0 - offset`` (angles the short way)."""
+    return np.atleast_2d(np.concatenate([x0 + shift, x0 - offset + shift], axis=-1))
 
 
 class LearnedSteering:
