@@ -172,6 +172,39 @@ def test_bad_obstacles(tiny_run, tmp_path, spec, contains):
     assert not out.exists()
 
 
+def test_run_checks_the_query_before_the_offline_steps(tmp_path):
+    """A goal inside an obstacle is refused before any simulation is generated."""
+    out = tmp_path / "run"
+    result = invoke("run", "--out", str(out), *TINY, "--obstacle", "box:-1,-1,1,1")
+    assert_one_line_error(result, contains="inside an obstacle")
+    assert not (out / "dataset.npz").exists()
+
+
+def test_plan_obstacles_replace_the_runs(tmp_path):
+    """A model whose run had an obstacle plans with it unless the plan gives its own
+    obstacles, which replace it (the same box given again is not doubled)."""
+    run = tmp_path / "with-box"
+    result = invoke("run", "--out", str(run), "--set", "generate.n_simulations=300",
+                    "--set", "clean.k_max=100", "--set", "plan.max_iterations=50", *BACKSTOP,
+                    "--obstacle", "box:-2,0.3,-1.2,2.5")
+    assert result.exit_code == 0, result.output
+    plans = {}
+    for name, extra in (("own", []), ("given", ["--obstacle", "box:-2,0.3,-1.2,2.5",
+                                                "--obstacle", "halfplane:0,-1,2.8"])):
+        out = tmp_path / f"{name}.json"
+        result = invoke("plan", "--model", str(run), "--max-iterations", "50", *extra,
+                        "--out", str(out))
+        assert result.exit_code == 0, result.output
+        plans[name] = json.loads(out.read_text())["obstacles"]
+    assert [o["type"] for o in plans["own"]] == ["box"]
+    assert [o["type"] for o in plans["given"]] == ["box", "halfplane"]
+
+
+def test_a_file_given_as_the_model_is_named_as_such(tiny_run):
+    result = invoke("plan", "--model", str(tiny_run / "plan.json"))
+    assert_one_line_error(result, contains="is a file, not a run directory")
+
+
 def test_u_max_and_obstacle_options(tiny_run, tmp_path):
     out = tmp_path / "p.json"
     result = invoke("plan", "--model", str(tiny_run), "--u-max", "3", "--obstacle",
@@ -472,6 +505,7 @@ def test_a_registered_systems_own_defaults_config_applies(monkeypatch):
     ('plan.obstacles=[{type="box", lo=[0,0], high=[1,1]}]', "did you mean 'low'?"),
     ('plan.obstacles=[{type="box", low=[0,0], high=[1,1], margin=1}]',
      "known keys: type, low, high"),
+    ("plan.goal=[1,", "'[1,' is not a valid TOML value"),
 ])
 def test_obstacle_and_number_settings_as_written(setting, contains, tmp_path):
     """A quoted number is text, not silently a number; a misspelt obstacle key gets the

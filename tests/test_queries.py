@@ -134,6 +134,19 @@ def _summary(out: Path) -> list[dict]:
     return list(csv.DictReader((out / "plans.csv").open()))
 
 
+def test_the_summary_says_which_plans_the_step_resolves(tiny_run, tmp_path):
+    """plans.csv's ``resolved`` column is the plan file's own step check, so a batch's
+    solved but unresolved plans can be told from the good ones."""
+    run, cfg = tiny_run
+    queries = [Query((-3.0 + k / 2, 0.0), (0.0, 0.0), 0.5, k) for k in range(4)]
+    plan_query_file(run, queries, tmp_path, config=cfg, max_iterations=200)
+    summary = _summary(tmp_path)
+    assert any(r["solved"] == "True" for r in summary)
+    for r in summary:
+        plan = json.loads((tmp_path / r["file"]).read_text())
+        assert r["resolved"] == str(plan["step_check"]["resolved"])
+
+
 def test_a_batch_that_ends_early_leaves_its_summary(tiny_run, tmp_path, monkeypatch):
     run, cfg = tiny_run
     queries = [Query((-3.0 + k / 2, 0.0), (0.0, 0.0), 0.3, k) for k in range(4)]

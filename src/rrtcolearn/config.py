@@ -654,10 +654,14 @@ def parse_override(item: str) -> tuple[list[str], Any]:
     parts = [p.strip() for p in key.strip().split(".")]
     if not all(parts):
         raise ConfigError(f"--set expects section.key=value, got {item!r}")
+    raw = raw.strip()
     try:
-        value = tomllib.loads(f"v = {raw.strip()}")["v"]
-    except tomllib.TOMLDecodeError:
-        value = raw.strip()  # a bare word is a string
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError as exc:
+        if raw[:1] in '[{"\'':  # meant as a list, table or quoted string: malformed
+            raise ConfigError(f"--set {item!r}: {raw!r} is not a valid TOML value "
+                              f"({exc})") from None
+        value = raw  # a bare word is a string
     return parts, value
 
 

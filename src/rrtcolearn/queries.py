@@ -35,8 +35,8 @@ if TYPE_CHECKING:
 __all__ = ["Query", "iter_plans", "plan_query_file", "read_queries"]
 
 _COLUMNS = ("start", "goal", "goal_tolerance", "seed")
-_SUMMARY = ("query", "seed", "status", "solved", "planning_cpu_s", "nodes", "iterations",
-            "path_cost", "final_goal_distance", "file")
+_SUMMARY = ("query", "seed", "status", "solved", "resolved", "planning_cpu_s", "nodes",
+            "iterations", "path_cost", "final_goal_distance", "file")
 NOT_PLANNED = "not planned"  # plans.csv status of a query a batch that ended early left
 
 
@@ -269,7 +269,11 @@ def plan_query_file(run_dir: str | Path, queries: Sequence[Query], out_dir: str 
                                             "schema_version": pipeline.PLAN_SCHEMA,
                                             "package_version": __version__, **d})
         rows[i] = {"query": i, "seed": queries[i].seed, "status": d["status"],
-                   "solved": d["solved"], "planning_cpu_s": d["planning_cpu_s"],
+                   "solved": d["solved"],
+                   # whether the plan's step resolves its path (`evaluate.step_check`): a
+                   # solved plan that is not resolved misses the goal when replayed at dt/2
+                   "resolved": d.get("step_check", {}).get("resolved", ""),
+                   "planning_cpu_s": d["planning_cpu_s"],
                    "nodes": d["nodes"], "iterations": d["iterations"],
                    "path_cost": d["path_cost"], "final_goal_distance":
                    d["final_goal_distance"], "file": name}

@@ -47,7 +47,7 @@ DaskLocalOpt = Annotated[int | None, typer.Option(
 ObstacleOpt = Annotated[list[str] | None, typer.Option(
     "--obstacle", help="forbidden region: box:lo1,lo2,hi1,hi2 or halfplane:n1,n2,offset in "
     "state space; rect:cx,cy,w,h[,angle], disc:cx,cy,r, polygon:x1,y1,... or sphere:cx,cy,cz,r "
-    "in the workspace, for plan.body")]
+    "in the workspace, for plan.body; on plan they replace the run's obstacles")]
 
 DynobenchOpt = Annotated[str | None, typer.Option(
     "--dynobench", help="a dynobench problem (the optional extra): <robot>/<environment> as "

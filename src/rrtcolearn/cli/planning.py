@@ -85,6 +85,8 @@ def plan_summary(p: Plan) -> dict:
             "nodes": p.nodes, "path_cost": round(p.path_cost, 4),
             "path_duration": round(p.path_duration, 3),
             "max_abs_u": round(p.max_abs_u, 4), "u_max": p.symmetric_limit,
+            **({"input_limits": _input_limits(p)} if p.symmetric_limit is None
+               and p.limit_mode is not None else {}),
             "limit_mode": p.limit_mode,
             "planning_cpu_s": round(p.planning_cpu_s, 4),
             **({"goal_connected": p.extra["connection"] or False}
@@ -100,11 +102,20 @@ def plan_summary(p: Plan) -> dict:
             **({"switched_on_at_iteration": ", ".join(
                 f"{k} {v}" for k, v in p.extra["connections_switched_on"].items())}
                if "connections_switched_on" in p.extra else {}),
+            # (the solve's own path: with anytime or polish the path was improved since)
             **({"goal_parent": _goal_parent_summary(p.extra["goal_parent"])}
-               if "goal_parent" in p.extra else {}),
+               if "goal_parent" in p.extra and "anytime" not in p.extra
+               and "polish" not in p.extra else {}),
             **(_anytime_summary(p.extra["anytime"]) if "anytime" in p.extra else {}),
             **(_polish_summary(p.extra["polish"]) if "polish" in p.extra else {}),
             **({"half_step_check": step_summary(p)} if "step_check" in p.extra else {})}
+
+
+def _input_limits(p: Plan) -> str:
+    """The input box of a plan whose inputs have limits of their own, input by input
+    (``u_max`` is the one bound they share, where they share one)."""
+    return ", ".join(f"[{lo:g}, {hi:g}]" for lo, hi in zip(
+        p.input_low.tolist(), p.input_high.tolist(), strict=True))
 
 
 def _goal_parent_summary(r: dict) -> str:
@@ -244,9 +255,13 @@ def plan(
             raise ConfigError(f"--dynobench {dynobench}: a {read.robot} problem; the model "
                               f"is of {model_cfg.system.name}")
         options["plan"] = {**posed.get("plan", {}), **options.get("plan", {})}
-        # the model's own configuration is the base; only its plan section may change here
+        # the model's own configuration is the base; only its plan section may change here.
+        # --obstacle gives this plan's obstacles: they replace the run's, not add to them
+        base_plan = model_cfg.plan.model_dump()
+        if obstacle:
+            base_plan["obstacles"] = []
         cfg = load_config(config, list(set_ or []), base={
-            "plan": model_cfg.plan.model_dump(),
+            "plan": base_plan,
             "system": model_cfg.system.model_dump(exclude_none=True)}, options=options)
         _plan_time_settings(config, list(set_ or []), model_cfg)
         cfg = add_obstacles(cfg, list(obstacle or []))
@@ -364,8 +379,12 @@ def _plan_queries(run_dir: Path, cfg: Config, system, path: Path, out: Path | No
                                progress=lambda done: bar.update(task, completed=done))
     cpu = np.array([r["planning_cpu_s"] for r in rows])
     solved = sum(bool(r["solved"]) for r in rows)
+    # solved plans whose step does not resolve the path (`evaluate.step_check`)
+    unresolved = sum(bool(r["solved"]) and r["resolved"] is False for r in rows)
     print_summary(f"plan --queries -> {out_dir}", {
         "queries": len(rows), "solved": f"{solved}/{len(rows)}",
+        **({"solved, not resolved by the step": f"{unresolved} (column resolved)"}
+           if unresolved else {}),
         "planning_cpu_s median": round(float(np.median(cpu)), 4),
         "planning_cpu_s mean": round(float(cpu.mean()), 4),
         "wall_s": round(time.perf_counter() - t0, 2),

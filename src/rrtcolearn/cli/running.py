@@ -152,6 +152,10 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         cfg = command_config(config, seed, set_, u_max=u_max, obstacles=obstacle, system=system,
                               offline_budget=offline_budget, posed=posed)
         run_dir = run_directory(out, cfg)
+        # the query checked before the offline steps (minutes), not after them
+        built = pipeline.system_from_config(cfg)
+        start, goal = pipeline.query_states(cfg, built)
+        pipeline.make_problem(built, cfg, start, goal, cfg.plan.goal_tolerance)
         t0 = time.perf_counter()
         figures = {"run_dir": str(run_dir)}
         figures |= _do_generate(cfg, run_dir, settings)
@@ -160,7 +164,6 @@ def run(config: ConfigOpt = None, seed: SeedOpt = None, out: OutOpt = None,
         figures |= fit_fig
         figures["offline_cpu_s"] = round(figures["generate_cpu_s"] + figures["clean_cpu_s"]
                                          + figures["fit_cpu_s"], 3)
-        start, goal = pipeline.query_states(cfg, fitted.system)
         p = pipeline.plan(fitted, start, goal, cfg.plan.goal_tolerance,
                           cfg.seed, config=fitted.config, time_limit=cfg.plan.time_limit,
                           max_iterations=cfg.plan.max_iterations)

@@ -182,16 +182,17 @@ def track(
         for name in ("open-loop", "tracked"):
             table.add_column(name, justify="right")
         tol = c.problem.goal_tolerance
-        for key, label in (("reached", f"goal reached (<= {tol:g})"),
-                           ("reached_2x", f"within 2x ({2 * tol:g})"),
+        for key, label in (("reached", f"share of runs reaching the goal (<= {tol:g})"),
+                           ("reached_2x", f"share within 2x ({2 * tol:g})"),
                            ("final_error_median", "final error, median"),
                            ("final_error_max", "final error, largest"),
                            ("deviation_median", "largest deviation, median"),
                            ("deviation_max", "largest deviation, largest"),
-                           ("time_at_limit", "time at the input limit"),
+                           ("time_at_limit", "share of the time at the input limit"),
                            ("inputs_in_box", "inputs within the box"),
-                           ("obstacle_entries", "runs entering an obstacle"),
-                           ("constraint_exits", "runs leaving the state constraints")):
+                           ("obstacle_entries", f"runs entering an obstacle (of {rollouts})"),
+                           ("constraint_exits",
+                            f"runs leaving the state constraints (of {rollouts})")):
             table.add_row(label, *(_figure(r[key]) for r in rows))
         out_console.print(table)
         if plot is not None:

@@ -10,9 +10,8 @@ from pathlib import Path
 
 from rrtcolearn.config import read_toml
 from rrtcolearn.data.store import digest, load_arrays, load_dataset, read_json
-from rrtcolearn.errors import ArtefactError
 from rrtcolearn.learn.models import FUNCTIONS_FORMAT
-from rrtcolearn.pipeline.layout import FUNCTIONS_FILE
+from rrtcolearn.pipeline.layout import FUNCTIONS_FILE, existing_run_dir
 
 
 def timed(fn, *args, **kwargs):
@@ -52,9 +51,7 @@ def content_digest(path: str | Path) -> tuple[str, str]:
 
 def inspect_run(run_dir: str | Path) -> list[dict]:
     """Size and content digest of every artefact in a run directory."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise ArtefactError(f"run directory not found: {run_dir}")
+    run_dir = existing_run_dir(run_dir)
     rows = []
     for path in sorted(p for p in run_dir.iterdir() if p.is_file()
                        and not p.name.startswith(".")):

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from rrtcolearn.config import Config, read_toml, to_toml, validate
 from rrtcolearn.data.store import atomic_write_text
+from rrtcolearn.errors import ArtefactError
 
 CONFIG_FILE = "config.toml"
 DATASET_FILE = "dataset.npz"
@@ -25,6 +26,18 @@ COLEARN_FILE = "colearn.json"
 CLEANED_FILE = "cleaned.npz"
 MODEL_FILE = "model.json"
 FUNCTIONS_FILE = "functions.npz"
+
+
+def existing_run_dir(run_dir: str | Path) -> Path:
+    """``run_dir`` as a Path; ArtefactError unless it is a directory (a file given for one,
+    e.g. a plan file or model.json, named as such)."""
+    run_dir = Path(run_dir)
+    if run_dir.is_file():
+        raise ArtefactError(f"{run_dir} is a file, not a run directory: give the directory "
+                            f"`rrtcolearn run` or `fit` wrote (it holds {MODEL_FILE})")
+    if not run_dir.is_dir():
+        raise ArtefactError(f"run directory not found: {run_dir}")
+    return run_dir
 
 
 def read_run_config(run_dir: str | Path) -> Config:

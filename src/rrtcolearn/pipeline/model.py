@@ -23,7 +23,13 @@ from rrtcolearn.pipeline.configure import (
     system_from_config,
     with_artefact_sections,
 )
-from rrtcolearn.pipeline.layout import CLEANED_FILE, FUNCTIONS_FILE, MODEL_FILE, save_config
+from rrtcolearn.pipeline.layout import (
+    CLEANED_FILE,
+    FUNCTIONS_FILE,
+    MODEL_FILE,
+    existing_run_dir,
+    save_config,
+)
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
@@ -176,9 +182,7 @@ def read_model_info(run_dir: str | Path, system: str | None = None
     ``system`` (a registered name or module:attribute) rebuilds the system by another name
     than the model records, e.g. a module's function for a name that was registered in
     another Python session; it must build a system of the recorded name."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise ArtefactError(f"run directory not found: {run_dir}")
+    run_dir = existing_run_dir(run_dir)
     info = read_checked_json(run_dir / MODEL_FILE, MODEL_FORMAT, MODEL_SCHEMA, "model file")
     try:
         config = Config.model_validate(info["config"])
