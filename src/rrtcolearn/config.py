@@ -383,9 +383,10 @@ class PlanConfig(_Section):
     funnel_radius: float = Field(
         0.3, gt=0, description="funnel connection only from nodes within this weighted "
         "distance of a funnel state")
-    funnel_duration: float = Field(
-        3.0, gt=0, le=100, description="the funnel's extremals are integrated for at most this "
-        "long (s); their cost is bounded by generate.max_cost")
+    funnel_duration: float | None = Field(
+        None, gt=0, le=100, description="the funnel's extremals are integrated for at most this "
+        "long (s); their cost is bounded by generate.max_cost; none: the data's longest "
+        "extremal (generate.max_duration as fitted), as long as U and J know them")
     funnel_min_duration: float = Field(
         0.0, ge=0, le=100, description="funnel states less than this time (s) from the goal "
         "are dropped (where the boundary value problem from near them is ill-conditioned)")

@@ -83,7 +83,7 @@ class PlannerSettings:
     connect_reach: float | None = _default(PlanConfig, "connect_reach")
     goal_funnel: int | None = _default(PlanConfig, "goal_funnel")
     funnel_radius: float = _default(PlanConfig, "funnel_radius")
-    funnel_duration: float = _default(PlanConfig, "funnel_duration")
+    funnel_duration: float | None = _default(PlanConfig, "funnel_duration")
     funnel_min_duration: float = _default(PlanConfig, "funnel_min_duration")
     funnel_max_cost: float = np.inf
     goal_lqr: bool | None = _default(PlanConfig, "goal_lqr")
@@ -107,6 +107,8 @@ class PlannerSettings:
                    for c in derive.plan_choices(self, system, self.data_reach)}
         if self.connect_reach is None:
             derived["connect_reach"] = self.data_reach
+        if self.funnel_duration is None:
+            derived["funnel_duration"] = self.max_duration
         if self.metric_scale is None:
             derived["metric_scale"] = system.metric_scale
         return replace(self, **derived)
