@@ -47,6 +47,48 @@ def test_funnel_states_lie_on_extremals_that_end_at_the_goal(funnel):
     assert (v >= system.state_low[1]).all() and (v <= system.state_high[1]).all()
 
 
+def test_the_kept_states_are_exactly_those_the_rules_keep():
+    """Every state the funnel keeps, and only those, by the rules written out here with the
+    hand RK4: each extremal integrated backwards from the goal until its |cost| exceeds the
+    bound, it leaves the ball around the goal that holds the box, or its time runs out; of
+    its states, those before its first one outside the box, at least ``min_duration`` from
+    the goal and outside the goal region. A box narrower than the system's in velocity and
+    a cost bound make every rule cut some extremal."""
+    system = make("double_integrator")
+    problem = PlanningProblem.create(system, [-1.0, 0.0], GOAL, 0.1)
+    low, high = np.array([-2.0, -0.8]), np.array([2.0, 0.8])
+    max_steps, max_cost, min_steps = 150, 3.0, 10
+    f = GoalFunnel.build(system, GOAL, problem.goal_offset, np.random.default_rng(5),
+                         n_simulations=200, time_weight=1.0, dt=DT, max_duration=max_steps * DT,
+                         max_cost=max_cost, scale=system.metric_scale, tolerance=0.1,
+                         min_duration=min_steps * DT, box=(low, high))
+    # the ball around the goal, in coordinates scaled by the box's widths, that holds the box
+    ball = 1.0 / (high - low)
+    radius = np.sqrt(np.sum((np.maximum(high - GOAL, GOAL - low) * ball) ** 2))
+    expected, why = set(), {"cost": 0, "ball": 0, "time": 0, "box": 0}
+    for sim, lam in enumerate(f.goal_costates):
+        z, steps = np.r_[GOAL, lam, 0.0], []
+        for k in range(1, max_steps + 1):
+            z = di_rk4(z, 1.0, -DT, 1)
+            if abs(z[4]) > max_cost:
+                why["cost"] += 1
+                break
+            if np.sqrt(np.sum(((z[:2] - GOAL) * ball) ** 2)) > radius:
+                why["ball"] += 1
+                break
+            steps.append((k, z[:2].copy()))
+        else:
+            why["time"] += 1
+        for k, x in steps:
+            if ((x < low) | (x > high)).any():
+                why["box"] += 1
+                break
+            if k >= min_steps and np.linalg.norm(x - GOAL) > 0.1:
+                expected.add((sim, k))
+    assert min(why.values()) > 0, why
+    assert set(zip(f.simulation.tolist(), f.steps.tolist(), strict=True)) == expected
+
+
 def test_funnel_is_deterministic(funnel):
     system = funnel.system
     problem = PlanningProblem.create(system, [-1.0, 0.0], GOAL, 0.1)

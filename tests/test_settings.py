@@ -34,11 +34,13 @@ def test_library_settings_resolve_as_the_run_records_them():
             assert f"plan.{key}" in config.derived
         assert np.array_equal(ours.metric_scale, system.metric_scale)
         assert ours.connect_reach == ours.data_reach
+        # the funnel's extremals as long as the data's longest (the fitted model's)
+        assert PlannerSettings(max_duration=7.25).resolved(system).funnel_duration == 7.25
 
 
 def test_given_values_are_kept():
     system = make("pendulum")
     s = PlannerSettings(sigma=0.3, control_samples=4, extend_distance=0.0,
-                        connect_reach=0.7).resolved(system)
-    assert (s.sigma, s.control_samples, s.extend_distance, s.connect_reach) == (0.3, 4, 0.0,
-                                                                              0.7)
+                        connect_reach=0.7, funnel_duration=2.5).resolved(system)
+    assert (s.sigma, s.control_samples, s.extend_distance, s.connect_reach,
+            s.funnel_duration) == (0.3, 4, 0.0, 0.7, 2.5)

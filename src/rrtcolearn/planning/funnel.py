@@ -126,13 +126,21 @@ class GoalFunnel:
             states, costs, lengths, _ = rollout_batch(system, z0, time_weight, -dt,
                                                       max_steps, max_cost, radius, n,
                                                       scale=ball)
-            xb = states[:, :, bounded]
-            # a state counts only if the whole way from it to the goal stays in the box
-            inside = np.logical_and.accumulate(((xb >= lo) & (xb <= hi)).all(axis=2), axis=1)
-            steps_left = np.arange(1, max_steps + 1)[None]
-            mask = inside & (steps_left <= lengths[:, None]) & (steps_left * dt >= min_duration)
-            sims, steps = np.nonzero(mask)
-            kept_states.append(states[sims, steps])
+            # each extremal's valid steps only (its first lengths[i]; most stop far short of
+            # max_steps), extremal by extremal: the arrays beyond them are never read
+            lengths = np.asarray(lengths, dtype=np.int64)
+            sims = np.repeat(np.arange(len(chunk)), lengths)
+            steps = np.arange(len(sims)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+            points = states[sims, steps]
+            inside = ((points[:, bounded] >= lo) & (points[:, bounded] <= hi)).all(axis=1)
+            # a state counts only if the whole way from it to the goal stays in the box: the
+            # steps of an extremal before its first state outside it
+            first_out = np.full(len(chunk), max_steps)
+            out, at = np.unique(sims[~inside], return_index=True)
+            first_out[out] = steps[~inside][at]
+            keep = (steps < first_out[sims]) & ((steps + 1) * dt >= min_duration)
+            sims, steps = sims[keep], steps[keep]
+            kept_states.append(points[keep])
             kept_sims.append(sims + first)
             kept_steps.append(steps + 1)
             kept_costs.append(np.abs(costs[sims, steps]).astype(np.float32))
