@@ -200,6 +200,25 @@ def test_plan_obstacles_replace_the_runs(tmp_path):
     assert [o["type"] for o in plans["given"]] == ["box", "halfplane"]
 
 
+def test_the_summary_gives_inputs_limits_of_their_own(tiny_run):
+    """Where the inputs share no single bound the summary lists each input's, instead of a
+    bare ``u_max`` of none that reads as unbounded."""
+    import dataclasses
+
+    from rrtcolearn import pipeline
+    from rrtcolearn.cli.planning import plan_summary
+
+    p = pipeline.plan(pipeline.load_model(tiny_run), [-3.0, 0.0], [0.0, 0.0], 0.3, 1,
+                      max_iterations=20)
+    shared = plan_summary(dataclasses.replace(p, input_low=np.array([-2.0]),
+                                              input_high=np.array([2.0])))
+    assert shared["u_max"] == 2.0 and "input_limits" not in shared
+    own = plan_summary(dataclasses.replace(p, input_low=np.array([-1.0, -1.5]),
+                                           input_high=np.array([1.0, 1.5])))
+    assert own["u_max"] is None and own["limit_mode"] == "saturate"
+    assert own["input_limits"] == "[-1, 1], [-1.5, 1.5]"
+
+
 def test_a_file_given_as_the_model_is_named_as_such(tiny_run):
     result = invoke("plan", "--model", str(tiny_run / "plan.json"))
     assert_one_line_error(result, contains="is a file, not a run directory")
