@@ -53,6 +53,10 @@ def test_run_writes_every_artefact(tiny_run):
     summary = json.loads((tiny_run / "summary.json").read_text())
     assert summary["raw_points"] > summary["kept_points"] > 0
     assert not list(tiny_run.glob(".*.tmp"))
+    # the goal funnel's length, derived from the fitted data, recorded with its reason
+    info = json.loads((tiny_run / "model.json").read_text())
+    assert info["config"]["plan"]["funnel_duration"] == info["max_duration"] > 0
+    assert "the data's longest extremal" in info["config"]["derived"]["plan.funnel_duration"]
 
 
 def test_steps_one_by_one_equal_the_run(tiny_run, tmp_path):

@@ -384,7 +384,7 @@ class PlanConfig(_Section):
         0.3, gt=0, description="funnel connection only from nodes within this weighted "
         "distance of a funnel state")
     funnel_duration: float | None = Field(
-        None, gt=0, le=100, description="the funnel's extremals are integrated for at most this "
+        None, gt=0, le=1000, description="the funnel's extremals are integrated for at most this "
         "long (s); their cost is bounded by generate.max_cost; none: the data's longest "
         "extremal (generate.max_duration as fitted), as long as U and J know them")
     funnel_min_duration: float = Field(
