@@ -32,7 +32,13 @@ from rrtcolearn.planning.propagator import Propagator
 from rrtcolearn.planning.schedule import Allowance
 from rrtcolearn.planning.shooting import shoot
 
-FUNNEL_POINTS = 3  # funnel states tried per node (each on its own extremal, nearest first)
+# Funnel states tried per node, nearest first. 1, not 3: on bench/ablation.py's models
+# (derived funnel duration, seeds 0-19, first solutions) no node ever connected from its
+# second or third nearest funnel state (where the nearest's continuation failed, its
+# neighbours on the adjacent extremals failed too, or gave the same edge that failed the
+# checks), so the same paths came out with 0.79x the acrobot's CPU per seed (total 0.68x)
+# and 0.97x the cart-pole's; docs/ablation.md, "Continuation along the funnel"
+FUNNEL_POINTS = 1
 FUNNEL_STRETCH = 1.5  # a funnel connection may last this times the funnel's duration
 
 
