@@ -124,10 +124,7 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
     config = record_choices(config, _learn_choices(system, data, config))
     functions = fit_functions(system, data, config)
     if config.plan.funnel_duration is None:  # from the fitted data, recorded with its reason
-        config = record_choices(config, [derive.Choice(
-            "plan.funnel_duration", float(functions.max_duration_),
-            "the data's longest extremal: the goal funnel's extremals as long as U and J "
-            "know them")])
+        config = record_choices(config, [derive.funnel_duration(functions.max_duration_)])
     save_config(config, run_dir)
     functions_sha = functions.save(run_dir / FUNCTIONS_FILE,
                                    {"system": system.name, "cleaned_sha256": meta["sha256"]})

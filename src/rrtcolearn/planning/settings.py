@@ -108,7 +108,7 @@ class PlannerSettings:
         if self.connect_reach is None:
             derived["connect_reach"] = self.data_reach
         if self.funnel_duration is None:
-            derived["funnel_duration"] = self.max_duration
+            derived["funnel_duration"] = derive.funnel_duration(self.max_duration).value
         if self.metric_scale is None:
             derived["metric_scale"] = system.metric_scale
         return replace(self, **derived)
