@@ -248,8 +248,35 @@ def test_the_gain_is_scipys_riccati_solution(name):
     assert lqr.K.shape == K.shape == (problem.system.n_inputs, problem.system.n_states)
     np.testing.assert_allclose(lqr.K, K, rtol=1e-6, atol=1e-8 * np.abs(K).max())
     np.testing.assert_allclose(lqr.P, P, rtol=1e-6, atol=1e-8 * np.abs(P).max())
-    rho = np.abs(np.linalg.eigvals(A - B @ K)).max()
+    mu = np.abs(np.linalg.eigvals(A - B @ K))
+    rho = mu.max()
     assert lqr.spectral_radius == pytest.approx(rho, rel=1e-6) and rho < 1.0
+    # the loop's horizon: 5 time constants of its slowest mode, here every mode moved
+    # (none within 1e-6 of the unit circle)
+    assert rho < 1.0 - 1e-6
+    tau = -DT / math.log(rho)
+    assert lqr.time_constant == pytest.approx(tau, rel=1e-5)
+    assert lqr.horizon == pytest.approx(5.0 * tau, rel=1e-5)
+
+
+def test_a_mode_the_loop_does_not_move_sets_no_horizon():
+    """dynobench's unicycle at kink_0's goal: its sideways offset is not controllable at the
+    linearisation (closed-loop eigenvalue 1 to 1e-11); the horizon comes from the slowest
+    mode the loop does move, here computed from the package's own step Jacobians and gain."""
+    from rrtcolearn.dynobench import make_system, planning_problem, read_problem
+
+    kink = read_problem("unicycle1_v0/kink_0")
+    system = make_system(kink)
+    problem = planning_problem(kink, system, 0.1)
+    lqr = build_goal_lqr(problem, DT)
+    assert isinstance(lqr, GoalLQR), lqr
+    A, B = step_jacobians(system, lqr.x_e, lqr.u_e, DT)
+    mu = np.sort(np.abs(np.linalg.eigvals(A - B @ lqr.K)))
+    assert mu[-1] > 1.0 - 1e-9  # the unmoved mode
+    moved = mu[mu < 1.0 - 1e-6]
+    assert len(moved) == len(mu) - 1
+    assert lqr.time_constant == pytest.approx(-DT / math.log(moved.max()), rel=1e-6)
+    assert np.isfinite(lqr.horizon) and lqr.horizon < 1e3
 
 
 @pytest.mark.parametrize("name", sorted(REFERENCES))

@@ -52,14 +52,19 @@ from tests.tree_cases import CASES, fit_model, plan_case, summary, tree_hash
 # the three funnel cases recorded again when the funnel's continuation came to start each
 # step from the secant predictor and stopped growing its step after a failure
 # (`GoalFunnel.steer`): the same nodes, iterations, connections and path costs (to 1e-3),
-# the funnel edge's costate converged from another guess within the solve's tolerance
+# the funnel edge's costate converged from another guess within the solve's tolerance;
+# pendulum_u1 and the sparse_rrt cart-pole recorded again when the LQR loop's horizon came to
+# be 5 time constants of its closed loop (`GoalLQR.horizon`: 5 s and 9.4 s) instead of 3 s:
+# pendulum_u1 connects at the LQR's switch-on (iteration 548, first try; before 1 138, path
+# 16.73 -> 12.75), the sparse_rrt cart-pole at its 4th try (iteration 597; before the 11th
+# at 1 215, path 119 935 -> 32 819)
 EXPECTED = {
     "pendulum": ("14c14b80f476f1e4", {"connection": "funnel", "funnel_states": 26726}),
     "pendulum_auto": ("e01f3a8434ba196e", {"connection": "funnel",
                                            "switched": {"lqr": 851, "shooting": 851,
                                                         "funnel": 851}}),
-    "pendulum_u1": ("3319d1712788195c", {"connection": "lqr",
-                                         "edges_by": {"learned": 204, "control": 888},
+    "pendulum_u1": ("6160cbf1da1ae409", {"connection": "lqr",
+                                         "edges_by": {"learned": 91, "control": 417},
                                          "switched": {"controls": 30, "lqr": 548}}),
     "pendulum_u1_obstacle": ("c314f55558930e9e", {"edges_by": {"learned": 5, "control": 695},
                                                   "lqr": {"tries": 101}}),
@@ -68,9 +73,9 @@ EXPECTED = {
                                                    "funnel": 331}}),
     "acrobot": ("a115ad656a07d5c3", {"nodes": 537}),
     "quadrotor": ("1e659a65b522405d", {"edges_by": {"learned": 26, "control": 190}}),
-    "sparse_rrt_cartpole": ("efdf9a17f120a861", {"connection": "lqr", "lqr": {"tries": 11},
+    "sparse_rrt_cartpole": ("aadc100e4aa08431", {"connection": "lqr", "lqr": {"tries": 4},
                                                  "edges_by": {"learned": 47,
-                                                              "control": 778}}),
+                                                              "control": 353}}),
     "sparse_rrt_acrobot": ("1bcb2e9e569edb9f", {"edges_by": {"learned": 65, "control": 1372},
                                                 "lqr": {"tries": 25}}),
 }

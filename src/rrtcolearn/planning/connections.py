@@ -27,7 +27,7 @@ from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.planning.contracts import Edge, GrowingTree, grown
 from rrtcolearn.planning.funnel import GoalFunnel
 from rrtcolearn.planning.learned import REFINE_PROGRESS, goal_query
-from rrtcolearn.planning.lqr import LOOP_DURATION, GoalLQR, build_goal_lqr
+from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
 from rrtcolearn.planning.propagator import Propagator
 from rrtcolearn.planning.schedule import Allowance
 from rrtcolearn.planning.shooting import shoot
@@ -126,9 +126,9 @@ def lqr_chain(propagator: Propagator, lqr: GoalLQR, x0: np.ndarray
               ) -> tuple[list[Edge] | None, str]:
     """The LQR closed loop from ``x0`` as a chain of constant-input edges (consecutive equal
     inputs, e.g. saturated, merged into one) if it reaches the goal region within
-    `lqr.LOOP_DURATION`, and how the loop ended (`GoalLQR.run`)."""
+    its horizon (`GoalLQR.horizon`), and how the loop ended (`GoalLQR.run`)."""
     prob, s = propagator.problem, propagator.settings
-    out = lqr.run(x0, max(1, round(LOOP_DURATION / s.dt)), propagator.box,
+    out = lqr.run(x0, max(1, round(lqr.horizon / s.dt)), propagator.box,
                   propagator.goal_mask, prob.validity if prob.validity else None)
     if not out.reached:
         return None, out.end
@@ -411,16 +411,16 @@ class LQRConnection:
         self.tried = np.zeros(256, dtype=bool)
         self.queried = 0
         self.tries = 0
-        # the least value from which the loop ran out of time (LOOP_DURATION) without
+        # the least value from which the loop ran out of time (its horizon) without
         # reaching the goal: only nodes below it are tried (from farther in V it takes longer)
         self.ceiling = np.inf
 
     def connect(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
         """The LQR closed loop to the goal from the untried node with the least Lyapunov
         value, as a chain of constant-input edges; (node, edges) or None when it does not
-        reach the goal region within `lqr.LOOP_DURATION`, leaves the constraints, meets an
-        obstacle or leaves the loop's basin (`GoalLQR.run`). Once a loop runs out of time,
-        only nodes with a lower value than its start are tried."""
+        reach the goal region within its horizon (`GoalLQR.horizon`), leaves the
+        constraints, meets an obstacle or leaves the loop's basin (`GoalLQR.run`). Once a
+        loop runs out of time, only nodes with a lower value than its start are tried."""
         lqr = self.lqr
         if lqr is None:
             return None

@@ -23,7 +23,7 @@ What, for any `System` (nothing here depends on the system's name or on one quer
 * the gain: the discrete Riccati equation (`scipy.linalg.solve_discrete_are`); the connection
   stays off when there is no equilibrium, no solution or the closed loop is unstable;
 * the connection: u = clip(u_e - K (x - x_e)) recomputed and held for each RK4 step up to
-  ``max_steps`` (the planner's `LOOP_DURATION`), cut at the first state in the goal
+  ``max_steps`` (the planner's `GoalLQR.horizon`), cut at the first state in the goal
   region; it fails at a state outside the constraint box or in an obstacle, and as soon as
   the Lyapunov value (x - x_e)' P (x - x_e) exceeds its value at the start (the state is not
   in the saturated loop's basin: aborting there keeps failed tries cheap).
@@ -51,17 +51,19 @@ import numpy as np
 from rrtcolearn.integrate import propagate
 from rrtcolearn.planning.problem import PlanningProblem
 
-__all__ = ["LOOP_DURATION", "GoalLQR", "LQRTry", "build_goal_lqr", "equilibrium",
+__all__ = ["LOOP_TIME_CONSTANTS", "GoalLQR", "LQRTry", "build_goal_lqr", "equilibrium",
            "step_jacobians"]
 
-# The longest goal loop the planner runs (s). It was the funnel's duration (3 s) when the
-# two shared ``plan.funnel_duration``. The funnel now takes the data's longest extremal; as
-# the loop's horizon that loses the quadrotor's goal (its data's extremals last 0.09 s: no
-# first solution within 60 s on seeds 0-6) and changes no first path's cost where they are
-# long (the shipped cart-pole's 20 s, the acrobot's 6.7 s: seeds 0-19, bench/ablation.py's
-# models). Not derived: a horizon from the closed loop's slowest mode (3 time constants:
-# 1.0-1.7 s on the pendulum, acrobot and quadrotor, 20 s on the cart-pole) was not measured.
-LOOP_DURATION = 3.0
+# The goal loop's horizon: this many time constants of the closed loop's slowest mode that
+# it moves (`GoalLQR.horizon`; e^-5 < 1% of that mode's error left). It was a fixed 3 s,
+# which stopped the sparse_rrt cart-pole's loop (time constant 1.87 s) short of the goal from
+# most nodes; docs/ablation.md, "The LQR loop's horizon from its time constant".
+LOOP_TIME_CONSTANTS = 5.0
+# A mode whose closed-loop eigenvalue lies within this of the unit circle is one the loop
+# does not move (the unicycle's sideways offset: |mu| = 1 - 1e-11; a time constant of 1e4 s
+# or more at a 0.01 s step): it sets no horizon, and the loop reaches the goal only where
+# that offset is already within the goal region.
+_UNMOVED = 1e-6
 
 _GN_ITERATIONS = 30
 _EQ_TOL = 1e-9  # |f(x_e, u_e)| relative to 1 + |f(goal, u_0)|
@@ -142,7 +144,8 @@ class GoalLQR:
 
     x_e, u_e : the equilibrium; K (m, n) the gain, P (n, n) the Riccati solution (the
     Lyapunov function (x - x_e)' P (x - x_e)); u_low, u_high the clipping box (+-inf where
-    free); ``spectral_radius`` that of the closed loop A - B K.
+    free); ``spectral_radius`` that of the closed loop A - B K; ``time_constant`` (s) that
+    of its slowest mode the loop moves (`_UNMOVED`).
     """
 
     problem: PlanningProblem
@@ -154,6 +157,12 @@ class GoalLQR:
     u_low: np.ndarray
     u_high: np.ndarray
     spectral_radius: float
+    time_constant: float
+
+    @property
+    def horizon(self) -> float:
+        """The longest loop run (s): `LOOP_TIME_CONSTANTS` time constants."""
+        return LOOP_TIME_CONSTANTS * self.time_constant
 
     def offset(self, x: np.ndarray) -> np.ndarray:
         """(N, n) x - x_e, angle coordinates as the goal test compares them (modulo a turn
@@ -281,7 +290,12 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
         return f"no LQR solution at the equilibrium ({exc})"
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(K))):
         return "no LQR solution at the equilibrium"
-    rho = float(np.abs(np.linalg.eigvals(A - B @ K)).max())
+    mu = np.abs(np.linalg.eigvals(A - B @ K))
+    rho = float(mu.max())
     if not rho < 1.0:
         return f"the LQR closed loop is unstable (spectral radius {rho:.4g})"
-    return GoalLQR(problem, float(dt), x_e, u_e, K, 0.5 * (P + P.T), u_low, u_high, rho)
+    moved = mu[mu < 1.0 - _UNMOVED]
+    if not len(moved):
+        return "the LQR closed loop moves no mode (every eigenvalue within 1e-6 of 1)"
+    tau = -float(dt) / float(np.log(moved.max())) if moved.max() > 0.0 else float(dt)
+    return GoalLQR(problem, float(dt), x_e, u_e, K, 0.5 * (P + P.T), u_low, u_high, rho, tau)
