@@ -43,7 +43,7 @@ STAGES = {
     "funnel continuation": ("planning/funnel.py", "steer"),
     "shooting (shoot, every caller)": ("planning/shooting.py", "shoot"),
     "  Newton linear solves": ("planning/shooting.py", "_solve"),
-    "  endpoints (RK4 + interpolation)": ("planning/shooting.py", "_endpoints"),
+    "  endpoints (RK4 + interpolation)": ("planning/shooting.py", "endpoints"),
     "LQR connection": ("planning/connections.py", "lqr_chain"),
     "expansion (all)": ("planning/rrt.py", "_expand"),
     "learned expansion": ("planning/learned.py", "steer"),

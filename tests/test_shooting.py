@@ -135,14 +135,14 @@ def test_endpoints_interpolate_between_rk4_steps_of_an_integrator_written_here()
     """States and costates at durations between RK4 steps (forwards and backwards), their
     rates, and NaN rows past an integration's end, against `rk4_numpy` and linear
     interpolation by hand."""
-    from rrtcolearn.planning.shooting import _endpoints
+    from rrtcolearn.planning.shooting import endpoints
 
     system = make("pendulum")
     x0 = np.array([-2.5, 0.4])
     for dt in (DT, -DT):
         v = np.array([[0.7, -0.3, 0.0], [0.7, -0.3, 0.004], [-1.2, 0.5, 0.237],
                       [0.1, 0.9, 0.5]])
-        z, rate = _endpoints(system, x0, v, 1.0, dt)
+        z, rate = endpoints(system, x0, v, 1.0, dt)
         for row, (lam1, lam2, t) in enumerate(v):
             k = int(np.floor(t / DT))
             traj = rk4_numpy(np.r_[x0, lam1, lam2, 0.0], 1.0, dt, k + 1)
@@ -153,7 +153,7 @@ def test_endpoints_interpolate_between_rk4_steps_of_an_integrator_written_here()
                                atol=1e-9)
     # a costate so large that the integration overflows: that row is NaN, the others not
     v = np.array([[1e200, 1e200, 0.5], [0.7, -0.3, 0.05]])
-    z, rate = _endpoints(system, x0, v, 1.0, DT)
+    z, rate = endpoints(system, x0, v, 1.0, DT)
     assert np.isnan(z[0]).all() and np.isnan(rate[0]).all()
     assert np.isfinite(z[1]).all() and np.isfinite(rate[1]).all()
 

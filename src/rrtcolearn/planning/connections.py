@@ -5,14 +5,16 @@ state between the loop's goal-biased iterations.
 - `ShootingConnection`: one extremal by shooting (`shooting.shoot`) from the nearest untried
   node, starting at U's guess;
 - `FunnelConnection`: continuation along a funnel of extremals into the goal
-  (`funnel.GoalFunnel`), then polished by shooting;
+  (`funnel.GoalFunnel`), then polished by shooting, or landed as a chain of extremals by
+  multiple shooting along it;
 - `LQRConnection`: the LQR closed loop about the goal's equilibrium (`lqr.GoalLQR`) as a chain
   of constant-input edges.
 
 `cheaper_goal_edge` is choose-parent for the goal once a solve reached it (the planner's
 last step). `shoot_edge` and `lqr_chain` are also what the anytime shortcuts
 (`planning.improve`) use.
-When each connection is switched on is `planning.schedule`'s to say.
+`extremal_chain` and `terminal_conditions` serve multiple shooting here and in
+`planning.improve`. When each connection is switched on is `planning.schedule`'s to say.
 """
 
 from __future__ import annotations
@@ -25,12 +27,13 @@ import numpy as np
 
 from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.planning.contracts import Edge, GrowingTree, grown
-from rrtcolearn.planning.funnel import GoalFunnel
+from rrtcolearn.planning.funnel import Continuation, GoalFunnel
 from rrtcolearn.planning.learned import REFINE_PROGRESS, goal_query
 from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
+from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.propagator import Propagator
 from rrtcolearn.planning.schedule import Allowance
-from rrtcolearn.planning.shooting import shoot
+from rrtcolearn.planning.shooting import endpoints, multiple_shoot, shoot
 
 # Funnel states tried per node, nearest first. 1, not 3: on bench/ablation.py's models
 # (derived funnel duration, seeds 0-19, first solutions) no node ever connected from its
@@ -40,6 +43,64 @@ from rrtcolearn.planning.shooting import shoot
 # and 0.97x the cart-pole's; docs/ablation.md, "Continuation along the funnel"
 FUNNEL_POINTS = 1
 FUNNEL_STRETCH = 1.5  # a funnel connection may last this times the funnel's duration
+# where a funnel continuation converged but its extremal, integrated forwards from the node
+# as one edge, misses the goal or fails a check (the acrobot: 28 of 29 such results over 10
+# seeds; the unstable dynamics amplify the interpolation between RK4 steps), indirect
+# multiple shooting along it: the extremal cut into this many segments in turn, each
+# doubling halving how long an error grows, the segments' starts and costates taken from
+# the continuation's extremal (docs/ablation.md, "Multiple shooting along a funnel
+# continuation")
+CHAIN_SEGMENTS = (2, 4, 8)
+# `multiple_shoot`'s tolerances: the state and costate residual of the free-final-time
+# solve, then of the solve with the segments' durations rounded to the RK4 grid
+SHOOT_TOLERANCE = 1e-6
+LAND_TOLERANCE = 1e-8
+
+
+def terminal_conditions(problem: PlanningProblem) -> Callable[[np.ndarray], np.ndarray]:
+    """The terminal conditions of one extremal into ``problem``'s goal for ends z (B, 2n):
+    the goal residual (`PlanningProblem.goal_residual`, the offset to the goal centre that
+    the goal shortcuts shoot at), and for a coordinate the goal leaves free (weight 0) its
+    costate (transversality: lambda_j(T) = 0)."""
+    n = problem.system.n_states
+    weights = problem.goal_weights
+    free = np.zeros(n, dtype=bool) if weights is None or problem.goal_fn is not None else \
+        np.asarray(weights) == 0
+
+    def terminal(z: np.ndarray) -> np.ndarray:
+        r = problem.goal_residual(z[:, :n])
+        if free.any():
+            r[:, free] = z[:, n:][:, free]
+        return r
+    return terminal
+
+
+def extremal_chain(propagator: Propagator, x0: np.ndarray, costates: np.ndarray,
+                   steps: np.ndarray) -> list[Edge] | None:
+    """The edges of a multiple-shooting solution from ``x0``: segment after segment, each
+    simulated from where the previous one ended with its own costate (``costates`` (M, n),
+    ``steps`` (M,) RK4 steps each; continuity holds to the solve's tolerance) and checked
+    like every planner edge (state box, obstacles, input limit, cut at its first state in
+    the goal region). None unless they all pass, each of its full length, and the chain
+    ends in the goal region."""
+    sys, s = propagator.problem.system, propagator.settings
+    n = sys.n_states
+    lam, z0 = np.empty(n), np.empty(2 * n + 1)
+    chain, at = [], np.asarray(x0, dtype=np.float64)
+    for costate, k in zip(costates, steps, strict=True):
+        z0[:n], z0[n : 2 * n], z0[2 * n] = at, costate, 0.0
+        if not propagator.within_limit(z0):
+            return None
+        params = np.append(sys.params_from_costate(at[None], costate[None])[0], k * s.dt)
+        lam[:] = costate
+        edge = propagator.extremal_edges(at, params[None], lam[None])
+        if edge is None or not (edge.hit or edge.steps == k):
+            return None
+        chain.append(edge)
+        if edge.hit:
+            return chain
+        at = edge.traj[-1, :n]
+    return None
 
 
 def shoot_edge(propagator: Propagator, x0: np.ndarray, params: np.ndarray, duration: float,
@@ -304,8 +365,7 @@ class FunnelConnection:
             out[at] = self.parts[p].cost_to_go[js[at] - self.starts[p]]
         return out
 
-    def steer(self, offset: np.ndarray, j: int, max_duration: float
-              ) -> tuple[np.ndarray, float] | None:
+    def steer(self, offset: np.ndarray, j: int, max_duration: float) -> Continuation | None:
         """`GoalFunnel.steer` from funnel state ``j`` (a global index over the parts)."""
         p = int(np.searchsorted(self.starts, j, side="right")) - 1
         return self.parts[p].steer(offset, j - self.starts[p], max_duration)
@@ -347,14 +407,15 @@ class FunnelConnection:
             return None
         for node in dict.fromkeys((cheapest, nearest)):
             self.tried[node] = True
-            edge = self._steer_from(tree, node)
-            if edge is not None:
-                return node, [edge]
+            chain = self._steer_from(tree, node)
+            if chain is not None:
+                return node, chain
         return None
 
-    def _steer_from(self, tree: GrowingTree, node: int) -> Edge | None:
-        """The edge to the goal from tree node ``node`` along its nearest funnel states (the
-        first whose continuation and solve succeed), or None."""
+    def _steer_from(self, tree: GrowingTree, node: int) -> list[Edge] | None:
+        """The edges to the goal from tree node ``node`` along its nearest funnel states (the
+        first whose continuation and solve succeed): one extremal, else a chain of them by
+        multiple shooting along the continuation's (`_chain`); or None."""
         prop = self.propagator
         prob, sys, s = prop.problem, prop.problem.system, prop.settings
         lam, z0 = self._lam, self._z0
@@ -375,7 +436,45 @@ class FunnelConnection:
                 x0, np.append(params, max(1, round(guess[1] / s.dt)) * s.dt), lam, z0) \
                 or shoot_edge(prop, x0, params, guess[1], longest, lam, z0)
             if edge is not None:
-                return edge
+                return [edge]
+            chain = self._chain(x0, guess, longest)
+            if chain is not None:
+                return chain
+        return None
+
+    def _chain(self, x0: np.ndarray, guess: Continuation, longest: float
+               ) -> list[Edge] | None:
+        """Edges from ``x0`` into the goal region by indirect multiple shooting
+        (`shooting.multiple_shoot`) along the continuation's extremal ``guess``: cut into
+        M equal segments (each M of `CHAIN_SEGMENTS` in turn until one gives a chain), the
+        interior segments' start states and costates read off the extremal integrated
+        backwards from the goal; `extremal_chain` makes and checks the edges."""
+        prop = self.propagator
+        prob, sys, s = prop.problem, prop.problem.system, prop.settings
+        n = sys.n_states
+        terminal = terminal_conditions(prob)
+        angles = list(sys.angle_dims)
+        for m in CHAIN_SEGMENTS:
+            # the segments' starts, as durations back from the goal (the first is x0's)
+            back = guess.duration * (1.0 - np.arange(0, m) / m)
+            with np.errstate(all="ignore"):
+                z, _ = endpoints(sys, prob.goal, np.column_stack(
+                    [np.repeat(guess.goal_costate[None], m, axis=0), back]),
+                    s.time_weight, -s.dt)
+            if not np.isfinite(z).all():
+                return None
+            # the extremal reaches x0 up to whole turns of its angles (the goal's image
+            # nearest the node): its states moved by them
+            turns = np.zeros(n)
+            turns[angles] = 2.0 * np.pi * np.round((x0 - z[0, :n])[angles] / (2.0 * np.pi))
+            res = multiple_shoot(sys, x0, np.vstack([guess.costate[None], z[1:, n:]]),
+                                 z[1:, :n] + turns, np.full(m, guess.duration / m), terminal,
+                                 time_weight=s.time_weight, dt=s.dt, max_duration=longest,
+                                 tolerance=SHOOT_TOLERANCE, grid_tolerance=LAND_TOLERANCE)
+            if res is not None:
+                chain = extremal_chain(prop, x0, res.costates, res.steps)
+                if chain is not None:
+                    return chain
         return None
 
     def report(self) -> dict:

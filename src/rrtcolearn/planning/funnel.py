@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -37,6 +37,15 @@ _CHUNK = 2000  # backward simulations per batched RK4 call (bounds the memory)
 _FIRST_STEP, _MIN_STEP, _MAX_STEP = 0.1, 1.0 / 64, 0.25
 _STAGE_TOLERANCE = 1e-4  # state residual of the intermediate continuation steps
 _FINAL_TOLERANCE = 1e-9  # ... and of the last: the forward solve starts from its costate
+
+
+class Continuation(NamedTuple):
+    """`GoalFunnel.steer`'s extremal from a state to the goal: its costate at the state,
+    its duration (s) and its costate at the goal (it integrates backwards from there)."""
+
+    costate: np.ndarray
+    duration: float
+    goal_costate: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -181,12 +190,12 @@ class GoalFunnel:
                                 distance_upper_bound=radius)
         return d.reshape(-1, k), np.minimum(i.reshape(-1, k), len(self.states) - 1)
 
-    def steer(self, offset: np.ndarray, j: int, max_duration: float
-              ) -> tuple[np.ndarray, float] | None:
+    def steer(self, offset: np.ndarray, j: int, max_duration: float) -> Continuation | None:
         """Costate and duration of an extremal from the state with goal offset ``offset``
-        (n,) to the goal, found by continuation from funnel state ``j``; None when a step of
-        the continuation does not converge. The result is a first guess for a forward solve:
-        its end is exact only up to the RK4 grid.
+        (n,) to the goal, found by continuation from funnel state ``j`` (and its costate at
+        the goal, from which the extremal integrates backwards to the state); None when a
+        step of the continuation does not converge. The result is a first guess for a
+        forward solve: its end is exact only up to the RK4 grid.
 
         Each step's Newton solve starts from the secant predictor (the last two solutions
         extrapolated to the new target), and once a step has failed the step no longer
@@ -219,9 +228,8 @@ class GoalFunnel:
             last, last_done, v, done = v, done, sol[0], nxt
             if not failed:
                 step = min(2.0 * step, _MAX_STEP)
-        duration = float(v[-1])
         n = self.system.n_states
-        return sol[1][n : 2 * n].copy(), duration
+        return Continuation(sol[1][n : 2 * n].copy(), float(v[-1]), v[:-1].copy())
 
 
 # the spawn key, under the query's seed, of the funnel's random stream ("funn"): apart from

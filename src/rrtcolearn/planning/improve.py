@@ -53,7 +53,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rrtcolearn.integrate import propagate_draws
-from rrtcolearn.planning.connections import goal_lqr, lqr_chain, shoot_edge
+from rrtcolearn.planning.connections import (
+    LAND_TOLERANCE,
+    SHOOT_TOLERANCE,
+    extremal_chain,
+    goal_lqr,
+    lqr_chain,
+    shoot_edge,
+    terminal_conditions,
+)
 from rrtcolearn.planning.contracts import Edge, add_edge
 from rrtcolearn.planning.learned import goal_query
 from rrtcolearn.planning.propagator import Propagator
@@ -66,11 +74,10 @@ if TYPE_CHECKING:
 __all__ = ["goal_shortcuts", "interior_shortcuts", "landed_shortcuts", "multiple_shooting",
            "shortcut"]
 
-# an interior shortcut is shot at its stretch's end node to this state residual (its end is
-# then off by the rounding of its duration to the RK4 grid), then put on it to LAND_TOLERANCE
-# with its duration on the grid (`shooting.land`; Newton's method converges quadratically)
-SHOOT_TOLERANCE = 1e-6
-LAND_TOLERANCE = 1e-8
+# an interior shortcut is shot at its stretch's end node to SHOOT_TOLERANCE, the state
+# residual (its end is then off by the rounding of its duration to the RK4 grid), then put
+# on it to LAND_TOLERANCE with its duration on the grid (`shooting.land`; Newton's method
+# converges quadratically): the tolerances of multiple shooting (`connections`)
 # the stretches tried in a row without a cheaper path before the interior search gives up
 INTERIOR_MISSES = 24
 # a re-attached path's last edge may run this many times its steps to reach the goal region
@@ -596,24 +603,6 @@ def _segments(durations: np.ndarray, longest: float) -> list[int]:
     return starts
 
 
-def _terminal(problem) -> Callable[[np.ndarray], np.ndarray]:
-    """The terminal conditions of `multiple_shooting` for ends z (B, 2n): the goal
-    residual (`PlanningProblem.goal_residual`, the offset to the goal centre that the goal
-    shortcuts shoot at), and for a coordinate the goal leaves free (weight 0) its costate
-    (transversality: lambda_j(T) = 0)."""
-    n = problem.system.n_states
-    weights = problem.goal_weights
-    free = np.zeros(n, dtype=bool) if weights is None or problem.goal_fn is not None else \
-        np.asarray(weights) == 0
-
-    def terminal(z: np.ndarray) -> np.ndarray:
-        r = problem.goal_residual(z[:, :n])
-        if free.any():
-            r[:, free] = z[:, n:][:, free]
-        return r
-    return terminal
-
-
 def multiple_shooting(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = None
                       ) -> Plan:
     """``plan`` with its whole path replaced by one extremal from the start into the goal
@@ -684,7 +673,7 @@ def multiple_shooting(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] 
         stopped[0] = stopped[0] or (stop is not None and stop())
         return stopped[0]
 
-    res = multiple_shoot(sys, x[0], lams, x[starts[1:]], seg_durations, _terminal(prob),
+    res = multiple_shoot(sys, x[0], lams, x[starts[1:]], seg_durations, terminal_conditions(prob),
                          time_weight=s.time_weight, dt=s.dt, max_duration=longest,
                          tolerance=SHOOT_TOLERANCE, grid_tolerance=LAND_TOLERANCE,
                          stop=halt)
@@ -693,25 +682,11 @@ def multiple_shooting(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] 
         return _recorded(plan, prop, None, "multiple_shooting", record)
     record["converged"] = True
     record["iterations"] = list(res.iterations)
-    lam, z0 = np.empty(n), np.empty(2 * n + 1)
-    chain, at = [], x[0]
-    for i, (costate, steps) in enumerate(zip(res.costates, res.steps, strict=True)):
-        z0[:n], z0[n : 2 * n], z0[2 * n] = at, costate, 0.0
-        if not prop.within_limit(z0):
-            break
-        params = np.append(sys.params_from_costate(at[None], costate[None])[0], steps * s.dt)
-        lam[:] = costate
-        edge = prop.extremal_edges(at, params[None], lam[None])
-        if edge is None or not (edge.hit or edge.steps == steps):
-            break
-        chain.append(edge)
-        if edge.hit or i == len(res.steps) - 1:
-            break
-        at = edge.traj[-1, :n]
-    cost = sum(e.cost for e in chain)
-    if not chain or not chain[-1].hit:
+    chain = extremal_chain(prop, x[0], res.costates, res.steps)
+    if chain is None:
         record["why"] = "edge check"
         return _recorded(plan, prop, None, "multiple_shooting", record)
+    cost = sum(e.cost for e in chain)
     if cost >= best - 1e-9:
         record["why"] = "not cheaper"
         return _recorded(plan, prop, None, "multiple_shooting", record)

@@ -141,7 +141,7 @@ class ShootingResult:
     iterations: int
 
 
-def _endpoints(system: System, x0: np.ndarray, v: np.ndarray, w: float, dt: float
+def endpoints(system: System, x0: np.ndarray, v: np.ndarray, w: float, dt: float
                ) -> tuple[np.ndarray, np.ndarray]:
     """State and costate (B, 2n) at duration v[:, -1] from x0 (n,) or each row's own start
     (B, n) with costates v[:, :-1], interpolated between RK4 steps of signed size ``dt``
@@ -162,7 +162,7 @@ def _endpoints(system: System, x0: np.ndarray, v: np.ndarray, w: float, dt: floa
 
 @numba.njit(cache=True)
 def _interpolate(states, z0, k, frac, lengths, h):
-    """`_endpoints`' state and costate (B, 2n) and their rate (B, 2n) of its batch
+    """`endpoints`' state and costate (B, 2n) and their rate (B, 2n) of its batch
     ``states`` (B, steps, 2n): row i between RK4 step k[i] - 1 (z0 itself for k[i] = 0)
     and k[i], at fraction frac[i]; NaN rows where the row stopped before step k[i]."""
     b, d = states.shape[0], states.shape[2]
@@ -192,7 +192,7 @@ def compiled_kernels(system: System) -> list[tuple[Callable, Callable[[], object
     x = np.ascontiguousarray((system.state_low + system.state_high) / 2, dtype=np.float64)
     v = np.append(np.zeros(n), 0.01)[None]
     return [(_eliminate, lambda: _solve(np.eye(n + 1), np.ones(n + 1))),
-            (_interpolate, lambda: _endpoints(system, x, v, 1.0, 0.01)),
+            (_interpolate, lambda: endpoints(system, x, v, 1.0, 0.01)),
             (_eliminate_sparse, lambda: _solve_sparse(np.eye(n + 1), np.ones(n + 1)))]
 
 
@@ -233,7 +233,7 @@ def newton(system: System, x0: np.ndarray, lam0: np.ndarray, duration0: float,
     v = np.concatenate([lam0, [float(np.clip(duration0, h, max_duration))]])
 
     def residual(vs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        z, rate = _endpoints(system, x0, vs, w, dt)
+        z, rate = endpoints(system, x0, vs, w, dt)
         with np.errstate(all="ignore"):
             hs = _hamiltonian(system, x0, vs[:, :-1], w)
             return np.hstack([offset(z[:, :n]), hs[:, None]]), rate, z
@@ -329,7 +329,7 @@ def land(system: System, x0: np.ndarray, lam0: np.ndarray, steps: int, target: n
 
     def ends(lams: np.ndarray) -> np.ndarray:
         v = np.hstack([lams, np.full((len(lams), 1), duration)])
-        return _endpoints(system, x0, v, w, dt)[0][:, :n] - target
+        return endpoints(system, x0, v, w, dt)[0][:, :n] - target
 
     r = ends(lam[None])[0]
     for _ in range(max_iterations + 1):
@@ -410,7 +410,7 @@ def _ms_newton(system: System, x0: np.ndarray, lams: np.ndarray, states: np.ndar
     def ends(xs: np.ndarray, lam: np.ndarray, durs: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray]:
         # every segment of every candidate in one batched integration
-        z, rate = _endpoints(system, xs.reshape(-1, n),
+        z, rate = endpoints(system, xs.reshape(-1, n),
                              np.hstack([lam.reshape(-1, n), durs.reshape(-1, 1)]), w, dt)
         return z, rate
 
@@ -552,7 +552,7 @@ def multiple_shoot(system: System, x0: np.ndarray, costates: np.ndarray, states:
     segment's end (state and costate), and H*(x0, lambda_0) = 0 (free final time; H* is
     constant along an extremal). Newton's method with Powell's dogleg trust region (several
     radii tried in one batch), the Jacobian by central differences in one batched
-    integration per iteration. Then each segment's duration is rounded to the RK4 grid and
+    integration per iteration. Then the segments' ends are rounded to the RK4 grid and
     the conditions but H* = 0 are solved again with those durations fixed, to
     ``grid_tolerance`` (as
     `land`: H* is then off zero by about the rounding). ``stop()`` is asked before each
@@ -567,7 +567,11 @@ def multiple_shoot(system: System, x0: np.ndarray, costates: np.ndarray, states:
     if free is None:
         return None
     lams, xs, durs, _, it1 = free
-    steps = np.maximum(1, np.rint(durs / h)).astype(np.int64)
+    # the segments' ends rounded to the grid, not each duration: the whole extremal's
+    # duration is then off by at most half a step, whatever M (the rounding of M durations
+    # added up: 8 segments of 16.5 steps became 8 of 17, H* 12% of w off zero)
+    ends = np.rint(np.cumsum(durs) / h)
+    steps = np.maximum(1, np.diff(ends, prepend=0.0)).astype(np.int64)
     grid = _ms_newton(system, x0, lams, xs, steps * h, terminal, False, w, dt, max_duration,
                       grid_tolerance, max_iterations, stop)
     if grid is None:
