@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tests.references import rk4
 from tests.test_systems_planning import rk4 as di_rk4
 
 from rrtcolearn.errors import ConfigError
@@ -372,13 +373,7 @@ def _acrobot_rk4(system, z: np.ndarray, dt: float, steps: int) -> np.ndarray:
               - system.hamiltonian(xm, np.repeat(lam, n, 0), np.repeat(u, n, 0), 1.0)) / (2 * h)
         return np.r_[system.dynamics(x, u)[0], -dh]
 
-    for _ in range(steps):
-        k1 = rhs(z)
-        k2 = rhs(z + 0.5 * dt * k1)
-        k3 = rhs(z + 0.5 * dt * k2)
-        k4 = rhs(z + dt * k3)
-        z = z + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    return z
+    return rk4(rhs, z, dt, steps)[-1]
 
 
 def test_the_chain_lands_acrobot_continuations_whose_one_edge_misses(acrobot, monkeypatch):
