@@ -142,7 +142,7 @@ class ShootingResult:
 
 
 def endpoints(system: System, x0: np.ndarray, v: np.ndarray, w: float, dt: float
-               ) -> tuple[np.ndarray, np.ndarray]:
+              ) -> tuple[np.ndarray, np.ndarray]:
     """State and costate (B, 2n) at duration v[:, -1] from x0 (n,) or each row's own start
     (B, n) with costates v[:, :-1], interpolated between RK4 steps of signed size ``dt``
     (negative: backwards in time), and their rate of change with the duration (B, 2n); NaN
@@ -411,7 +411,7 @@ def _ms_newton(system: System, x0: np.ndarray, lams: np.ndarray, states: np.ndar
              ) -> tuple[np.ndarray, np.ndarray]:
         # every segment of every candidate in one batched integration
         z, rate = endpoints(system, xs.reshape(-1, n),
-                             np.hstack([lam.reshape(-1, n), durs.reshape(-1, 1)]), w, dt)
+                            np.hstack([lam.reshape(-1, n), durs.reshape(-1, 1)]), w, dt)
         return z, rate
 
     def residual(vs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
