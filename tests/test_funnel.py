@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tests import references
 from tests.references import rk4
 from tests.test_systems_planning import rk4 as di_rk4
 
@@ -360,29 +361,22 @@ def test_multiple_shooting_along_a_continuation_joins_and_resimulates(funnel, mo
 
 
 def _acrobot_rk4(system, z: np.ndarray, dt: float, steps: int) -> np.ndarray:
-    """The acrobot's extremal integrated here: RK4 of x' = f(x, u*), lambda' = -dH/dx at
-    u* (central differences of the system's Hamiltonian, not its generated kernels)."""
-    n = 4
-
-    def rhs(y):
-        x, lam = y[None, :n], y[None, n:]
-        u = system.optimal_control(x, lam)
-        h = 1e-6 * np.maximum(1.0, np.abs(x[0]))
-        xp, xm = x + np.diag(h), x - np.diag(h)
-        dh = (system.hamiltonian(xp, np.repeat(lam, n, 0), np.repeat(u, n, 0), 1.0)
-              - system.hamiltonian(xm, np.repeat(lam, n, 0), np.repeat(u, n, 0), 1.0)) / (2 * h)
-        return np.r_[system.dynamics(x, u)[0], -dh]
-
-    return rk4(rhs, z, dt, steps)[-1]
+    """The acrobot's extremal from z = (x, lambda) integrated by the suite's own references:
+    Pontryagin's equations on the textbook dynamics (`references.state_costate_rhs`, not
+    the system's generated kernels) under a plain RK4; (x, lambda, cost) at the end."""
+    low, high = system.input_limits()
+    rhs = references.state_costate_rhs(references.acrobot, 1, 1.0, low=low, high=high)
+    return rk4(rhs, np.r_[z, 0.0], dt, steps)[-1]
 
 
 def test_the_chain_lands_acrobot_continuations_whose_one_edge_misses(acrobot, monkeypatch):
     """Into the acrobot's upright a converged continuation's extremal, integrated forwards as
     one edge, often misses the goal region (the instability amplifies the interpolation
     between RK4 steps) and the forward solve does not always mend it; multiple shooting
-    along it does. Each chain re-simulated edge by edge with the RK4 written here ends in the
-    goal region. Every other node lies a turn of each angle away from its funnel state (the
-    goal's image nearest it is then another): the chain's segments start turns over."""
+    along it does. Each chain, re-simulated edge by edge on the textbook acrobot
+    (`tests/references.py`), ends in the goal region. Every other node lies a turn of each
+    angle away from its funnel state (the goal's image nearest it is then another): the
+    chain's segments start turns over."""
     import rrtcolearn.planning.connections as connections
     from rrtcolearn.planning.connections import shoot_edge
 

@@ -429,12 +429,12 @@ class FunnelConnection:
             guess = self.steer(offset, int(self.index[node, q]), longest)
             if guess is None:
                 continue
-            params = sys.params_from_costate(x0[None], guess[0][None])[0]
+            params = sys.params_from_costate(x0[None], guess.costate[None])[0]
             # the continuation's extremal as it is (exact up to the interpolation between
             # RK4 steps), else polished by a forward solve
             edge = prop.goal_extremal(
-                x0, np.append(params, max(1, round(guess[1] / s.dt)) * s.dt), lam, z0) \
-                or shoot_edge(prop, x0, params, guess[1], longest, lam, z0)
+                x0, np.append(params, max(1, round(guess.duration / s.dt)) * s.dt), lam, z0) \
+                or shoot_edge(prop, x0, params, guess.duration, longest, lam, z0)
             if edge is not None:
                 return [edge]
             chain = self._chain(x0, guess, longest)
