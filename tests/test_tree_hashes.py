@@ -60,7 +60,10 @@ from tests.tree_cases import CASES, fit_model, plan_case, summary, tree_hash
 # at 1 215, path 119 935 -> 32 819); pendulum_auto recorded again when a funnel continuation
 # whose extremal misses the goal as one edge came to be landed by multiple shooting along it
 # (`FunnelConnection._chain`): the same iteration 851, now by a chain of two funnel edges
-# (path 6.80 -> 5.42; the optimum to the ball is 5.205)
+# (path 6.80 -> 5.42; the optimum to the ball is 5.205); the cart-pole recorded again when
+# choose-parent for the goal came to try the funnel too (`FunnelConnection.cheaper`): the
+# same tree, connected at the same iteration 331, plus a cheaper chain of two funnel edges
+# (path 1 581 -> 818)
 EXPECTED = {
     "pendulum": ("14c14b80f476f1e4", {"connection": "funnel", "funnel_states": 26726}),
     "pendulum_auto": ("547b79e027def467", {"connection": "funnel",
@@ -71,7 +74,7 @@ EXPECTED = {
                                          "switched": {"controls": 30, "lqr": 548}}),
     "pendulum_u1_obstacle": ("c314f55558930e9e", {"edges_by": {"learned": 5, "control": 695},
                                                   "lqr": {"tries": 101}}),
-    "cartpole": ("c11ec3e97a142e91", {"nodes": 273, "connection": "funnel",
+    "cartpole": ("79564b277800a51f", {"nodes": 275, "connection": "funnel",
                                       "switched": {"lqr": 331, "shooting": 331,
                                                    "funnel": 331}}),
     "acrobot": ("a115ad656a07d5c3", {"nodes": 537}),

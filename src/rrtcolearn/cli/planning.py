@@ -120,10 +120,11 @@ def _input_limits(p: Plan) -> str:
 
 def _goal_parent_summary(r: dict) -> str:
     """Choose-parent for the goal in words (`connections.cheaper_goal_edge`'s record)."""
+    tried = f"{r['tries']} nodes tried" + (f", {r['funnel_tries']} through the goal funnel"
+                                           if r.get("funnel_tries") else "")
     if r["cost"] < r["cost_before"]:
-        return (f"{r['tries']} nodes tried: path cost {r['cost_before']:.4g} -> "
-                f"{r['cost']:.4g} by a cheaper goal edge")
-    return f"{r['tries']} nodes tried: none gave a cheaper goal edge"
+        return f"{tried}: path cost {r['cost_before']:.4g} -> {r['cost']:.4g}"
+    return f"{tried}: none gave a cheaper path"
 
 
 def step_summary(p: Plan) -> str:

@@ -377,20 +377,8 @@ class FunnelConnection:
         from the node. First from the node whose path would cost least (cost to come plus
         its nearest funnel state's cost to go: the shipped cart-pole's first paths 15.4x ->
         11.6x the optimum, median of 10 seeds), then from the node nearest a funnel state."""
-        prop = self.propagator
-        prob, s = prop.problem, prop.settings
         self.allowance.accrue()
-        m = tree.data.n_nodes
-        self.dist = grown(self.dist, m, np.inf)
-        self.index = grown(self.index, m, 0)
-        self.tried = grown(self.tried, m, False)
-        self._states = tree.data.states
-        if self.queried < m:
-            offsets = prob.goal_offset(tree.data.states[self.queried : m])
-            d, i = self.nearest(offsets, s.funnel_radius)
-            self.dist[self.queried : m], self.index[self.queried : m] = d, i
-            self.queried = m
-        near = np.flatnonzero(~self.tried[:m] & (self.dist[:m, 0] <= s.funnel_radius))
+        near = self._untried(tree)
         if not len(near):
             self.idle += 1
             if self.idle >= self.grow_after and self.simulations < self.limit:
@@ -411,6 +399,50 @@ class FunnelConnection:
             if chain is not None:
                 return node, chain
         return None
+
+    def cheaper(self, tree: GrowingTree, best: float, tries: int,
+                stop: Callable[[], bool] | None = None
+                ) -> tuple[tuple[int, list[Edge]] | None, int]:
+        """Choose-parent for the goal through the funnel, once a solve has reached the goal
+        at cost ``best``: continuations (`_steer_from`) from the untried nodes within the
+        funnel's radius whose cost to come plus their nearest funnel state's cost to go is
+        below ``best``, least first, at most ``tries`` of them (``stop()`` asked before
+        each). ((node, edges) of the cheapest path found, or None; the tries made).
+
+        On the shipped cart-pole the first path's cost is almost all its one funnel edge,
+        from whichever node the allowance happened to try first (docs/ablation.md,
+        "Choose-parent through the funnel")."""
+        near = self._untried(tree)
+        come = tree.data.cost_to_come(near)
+        total = come + self.cost_to_go(self.index[near, 0])
+        found, made = None, 0
+        for r in np.argsort(total, kind="stable")[:tries]:
+            if total[r] >= best or (stop is not None and stop()):
+                break
+            node = int(near[r])
+            self.tried[node] = True
+            made += 1
+            chain = self._steer_from(tree, node)
+            if chain is not None and come[r] + sum(e.cost for e in chain) < best:
+                best, found = float(come[r] + sum(e.cost for e in chain)), (node, chain)
+        return found, made
+
+    def _untried(self, tree: GrowingTree) -> np.ndarray:
+        """The tree's nodes within the funnel's radius that no continuation has started
+        from, after querying the nodes added since the last call for their nearest funnel
+        states."""
+        prob, s = self.propagator.problem, self.propagator.settings
+        m = tree.data.n_nodes
+        self.dist = grown(self.dist, m, np.inf)
+        self.index = grown(self.index, m, 0)
+        self.tried = grown(self.tried, m, False)
+        self._states = tree.data.states
+        if self.queried < m:
+            offsets = prob.goal_offset(tree.data.states[self.queried : m])
+            d, i = self.nearest(offsets, s.funnel_radius)
+            self.dist[self.queried : m], self.index[self.queried : m] = d, i
+            self.queried = m
+        return np.flatnonzero(~self.tried[:m] & (self.dist[:m, 0] <= s.funnel_radius))
 
     def _steer_from(self, tree: GrowingTree, node: int) -> list[Edge] | None:
         """The edges to the goal from tree node ``node`` along its nearest funnel states (the

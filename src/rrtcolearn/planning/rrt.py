@@ -184,8 +184,9 @@ class RRTCoLearn:
     def _cheaper_goal(self, run: Solve, termination: TerminationCondition) -> None:
         """Choose-parent for the goal once the solve reached it
         (`connections.cheaper_goal_edge`): the cheaper path's goal edge (U's guess, or a
-        shooting extremal from it) added below its node and made the goal node; the record
-        in ``run.goal_parent``."""
+        shooting extremal from it) added below its node and made the goal node; then, where
+        the goal funnel is on, the same through it (`FunnelConnection.cheaper`: a chain of
+        funnel edges); the record in ``run.goal_parent``."""
         progress, tree = run.progress, run.tree
         found, run.goal_parent = cheaper_goal_edge(
             self.propagator, self.model, tree, progress.goal_node,
@@ -197,6 +198,18 @@ class RRTCoLearn:
             if kind != "learned":  # (an extremal's kind unless recorded)
                 tree.data.made_by[node] = kind
             progress.goal_node = node
+        funnel = run.connections.get("funnel")
+        if isinstance(funnel, FunnelConnection):  # the same through the goal funnel, if built
+            best = run.goal_parent["cost"]
+            chain, run.goal_parent["funnel_tries"] = funnel.cheaper(
+                tree, best, self.settings.goal_parent_tries, lambda: termination(0))
+            if chain is not None:
+                node, edges = chain
+                for edge in edges:
+                    node = tree.add(node, edge)
+                    tree.data.made_by[node] = "funnel"
+                progress.goal_node = node
+                run.goal_parent["cost"] = float(tree.data.cost_to_come(np.array([node]))[0])
 
     def narrowest_control_scale(self) -> float:
         """The least ``control_scale`` anytime planning narrows random controls to
