@@ -157,6 +157,8 @@ def test_choose_parent_through_the_funnel_adds_a_cheaper_chain_that_resimulates(
     from tests.references import rk4
     from tests.tree_cases import plan_case
 
+    from rrtcolearn.planning import connections
+
     case = _CASES["cartpole"]
     model = fit_model(case, tmp_path_factory.mktemp("funnel_parent") / "cartpole")
     p = plan_case(case, model)
@@ -166,10 +168,10 @@ def test_choose_parent_through_the_funnel_adds_a_cheaper_chain_that_resimulates(
     for a in ("states", "parents", "costs", "durations"):
         assert np.array_equal(getattr(p.tree, a)[:n], getattr(q.tree, a)[:n])
     record = p.extra["goal_parent"]
-    assert 1 <= record["funnel_tries"] <= 4
+    assert 1 <= record["funnel_tries"] <= 4 * len(connections.PARENT_REACH)
     assert record["cost_before"] == pytest.approx(q.path_cost, rel=1e-12)
     assert record["cost"] == pytest.approx(p.path_cost, rel=1e-12)
-    assert p.path_cost < q.path_cost  # measured: 1 581 -> 818
+    assert p.path_cost < q.path_cost  # measured: 1 581 -> 691
     new = [i for i in p.path_nodes if i >= n]
     assert new and new == list(range(n, p.tree.n_nodes))  # the chain ends the path
     assert all(p.tree.kind(i) == "funnel" for i in new)

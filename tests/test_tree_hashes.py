@@ -63,7 +63,8 @@ from tests.tree_cases import CASES, fit_model, plan_case, summary, tree_hash
 # (path 6.80 -> 5.42; the optimum to the ball is 5.205); the cart-pole recorded again when
 # choose-parent for the goal came to try the funnel too (`FunnelConnection.cheaper`): the
 # same tree, connected at the same iteration 331, plus a cheaper chain of two funnel edges
-# (path 1 581 -> 818)
+# (path 1 581 -> 818); and again when it came to try nodes within twice the funnel's radius
+# too (`connections.PARENT_REACH`): one funnel edge from another node (path 1 581 -> 691)
 EXPECTED = {
     "pendulum": ("14c14b80f476f1e4", {"connection": "funnel", "funnel_states": 26726}),
     "pendulum_auto": ("547b79e027def467", {"connection": "funnel",
@@ -74,7 +75,7 @@ EXPECTED = {
                                          "switched": {"controls": 30, "lqr": 548}}),
     "pendulum_u1_obstacle": ("c314f55558930e9e", {"edges_by": {"learned": 5, "control": 695},
                                                   "lqr": {"tries": 101}}),
-    "cartpole": ("79564b277800a51f", {"nodes": 275, "connection": "funnel",
+    "cartpole": ("609e47022f095142", {"nodes": 274, "connection": "funnel",
                                       "switched": {"lqr": 331, "shooting": 331,
                                                    "funnel": 331}}),
     "acrobot": ("a115ad656a07d5c3", {"nodes": 537}),

@@ -359,10 +359,11 @@ class PlanConfig(_Section):
         "at most this many nodes whose cost-to-come plus the learned J to the goal is below "
         "the path's cost (least first, V-valid, from U's guess), keeping the cheapest path "
         "(RRT*'s choose-parent for the goal); where the goal funnel is on, then as many "
-        "continuations from nodes within its radius, cheapest cost-to-come plus funnel "
-        "cost-to-go first; 0: off, the paper's planner. Pendulum first cost 2.31x -> 1.53x "
-        "the optimum (median, 20 seeds) at 1.04-1.08x the CPU per seed; through the funnel "
-        "cart-pole 5.35x -> 4.88x, acrobot 8.17x -> 7.75x (docs/ablation.md)")
+        "continuations from nodes within its radius, then as many within twice it, "
+        "cheapest cost-to-come plus funnel cost-to-go first; 0: off, the paper's planner. "
+        "Pendulum first cost 2.31x -> 1.53x the optimum (median, 20 seeds) at 1.04-1.08x the "
+        "CPU per seed; through the funnel cart-pole 5.35x -> 4.34x, acrobot 8.17x -> 6.38x "
+        "(docs/ablation.md)")
     max_candidates: int | None = Field(
         32, ge=1, description="query J for only this many nodes nearest the target "
         "(weighted distance, from the tree's nearest-neighbour index), so an iteration's "

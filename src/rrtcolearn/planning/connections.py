@@ -51,6 +51,16 @@ FUNNEL_STRETCH = 1.5  # a funnel connection may last this times the funnel's dur
 # the continuation's extremal (docs/ablation.md, "Multiple shooting along a funnel
 # continuation")
 CHAIN_SEGMENTS = (2, 4, 8)
+# choose-parent through the funnel (`FunnelConnection.cheaper`) tries plan.goal_parent_tries
+# nodes within each of these multiples of the funnel's radius in turn (the untried ones):
+# a continuation converges from farther than the radius the connection keeps to while the
+# tree grows (there every try costs iterations), and once the goal is reached the cheapest
+# node is worth a few. Alternating per seed, seeds 0-19 (docs/ablation.md): (1, 2) against
+# (1,) cart-pole first median 4.88x -> 4.34x, acrobot 7.75x -> 6.38x, none dearer, at
+# 1.08x and 1.14x the CPU per seed; one rung of 2 alone made 2 and 4 seeds dearer (its
+# tries spent on other nodes); a third at 4: cart-pole 3.95x at 1.04x, the acrobot the same
+# paths at 1.26x the CPU
+PARENT_REACH = (1.0, 2.0)
 # `multiple_shoot`'s tolerances: the state and costate residual of the free-final-time
 # solve, then of the solve with the segments' durations rounded to the RK4 grid
 SHOOT_TOLERANCE = 1e-6
@@ -404,27 +414,36 @@ class FunnelConnection:
                 stop: Callable[[], bool] | None = None
                 ) -> tuple[tuple[int, list[Edge]] | None, int]:
         """Choose-parent for the goal through the funnel, once a solve has reached the goal
-        at cost ``best``: continuations (`_steer_from`) from the untried nodes within the
-        funnel's radius whose cost to come plus their nearest funnel state's cost to go is
-        below ``best``, least first, at most ``tries`` of them (``stop()`` asked before
-        each). ((node, edges) of the cheapest path found, or None; the tries made).
+        at cost ``best``: continuations (`_steer_from`) from the untried nodes within each
+        multiple of the funnel's radius in `PARENT_REACH` in turn whose cost to come plus
+        their nearest funnel state's cost to go is below ``best``, least first, at most
+        ``tries`` of them per multiple (``stop()`` asked before each). ((node, edges) of the
+        cheapest path found, or None; the tries made).
 
         On the shipped cart-pole the first path's cost is almost all its one funnel edge,
         from whichever node the allowance happened to try first (docs/ablation.md,
-        "Choose-parent through the funnel")."""
-        near = self._untried(tree)
-        come = tree.data.cost_to_come(near)
-        total = come + self.cost_to_go(self.index[near, 0])
+        "Through the goal funnel too")."""
+        self._untried(tree)
         found, made = None, 0
-        for r in np.argsort(total, kind="stable")[:tries]:
-            if total[r] >= best or (stop is not None and stop()):
-                break
-            node = int(near[r])
-            self.tried[node] = True
-            made += 1
-            chain = self._steer_from(tree, node)
-            if chain is not None and come[r] + sum(e.cost for e in chain) < best:
-                best, found = float(come[r] + sum(e.cost for e in chain)), (node, chain)
+        for reach in PARENT_REACH:
+            radius = reach * self.propagator.settings.funnel_radius
+            m = tree.data.n_nodes
+            nodes = np.flatnonzero(~self.tried[:m])
+            dist, index = self.nearest(self.propagator.problem.goal_offset(
+                tree.data.states[nodes]), radius)
+            near = dist[:, 0] <= radius
+            nodes, dist, index = nodes[near], dist[near], index[near]
+            come = tree.data.cost_to_come(nodes)
+            total = come + self.cost_to_go(index[:, 0])
+            for r in np.argsort(total, kind="stable")[:tries]:
+                if total[r] >= best or (stop is not None and stop()):
+                    break
+                node = int(nodes[r])
+                self.tried[node] = True
+                made += 1
+                chain = self._steer_from(tree, node, dist[r], index[r], radius)
+                if chain is not None and come[r] + sum(e.cost for e in chain) < best:
+                    best, found = float(come[r] + sum(e.cost for e in chain)), (node, chain)
         return found, made
 
     def _untried(self, tree: GrowingTree) -> np.ndarray:
@@ -444,10 +463,14 @@ class FunnelConnection:
             self.queried = m
         return np.flatnonzero(~self.tried[:m] & (self.dist[:m, 0] <= s.funnel_radius))
 
-    def _steer_from(self, tree: GrowingTree, node: int) -> list[Edge] | None:
+    def _steer_from(self, tree: GrowingTree, node: int, dist: np.ndarray | None = None,
+                    index: np.ndarray | None = None, radius: float | None = None
+                    ) -> list[Edge] | None:
         """The edges to the goal from tree node ``node`` along its nearest funnel states (the
         first whose continuation and solve succeed): one extremal, else a chain of them by
-        multiple shooting along the continuation's (`_chain`); or None."""
+        multiple shooting along the continuation's (`_chain`); or None. Its nearest funnel
+        states within the radius are the connection's (``dist`` None), or ``dist`` and
+        ``index`` (FUNNEL_POINTS each) within ``radius``."""
         prop = self.propagator
         prob, sys, s = prop.problem, prop.problem.system, prop.settings
         lam, z0 = self._lam, self._z0
@@ -455,10 +478,12 @@ class FunnelConnection:
         offset = prob.goal_offset(x0)[0]
         # the node may be farther from the goal than the funnel state it starts from
         longest = FUNNEL_STRETCH * s.funnel_duration
+        if dist is None:
+            dist, index, radius = self.dist[node], self.index[node], s.funnel_radius
         for q in range(FUNNEL_POINTS):
-            if not self.dist[node, q] <= s.funnel_radius:
+            if not dist[q] <= radius:
                 break
-            guess = self.steer(offset, int(self.index[node, q]), longest)
+            guess = self.steer(offset, int(index[q]), longest)
             if guess is None:
                 continue
             params = sys.params_from_costate(x0[None], guess.costate[None])[0]
