@@ -423,27 +423,29 @@ class FunnelConnection:
         On the shipped cart-pole the first path's cost is almost all its one funnel edge,
         from whichever node the allowance happened to try first (docs/ablation.md,
         "Through the goal funnel too")."""
-        self._untried(tree)
+        self._untried(tree)  # (the per-node arrays sized to the tree)
+        radius = self.propagator.settings.funnel_radius
+        m = tree.data.n_nodes
+        # every untried node's nearest funnel states within the widest rung, once; each
+        # rung then takes those within its own radius that are still untried
+        nodes = np.flatnonzero(~self.tried[:m])
+        dist, index = self.nearest(self.propagator.problem.goal_offset(
+            tree.data.states[nodes]), PARENT_REACH[-1] * radius)
+        come = tree.data.cost_to_come(nodes)
+        total = come + self.cost_to_go(index[:, 0])
         found, made = None, 0
         for reach in PARENT_REACH:
-            radius = reach * self.propagator.settings.funnel_radius
-            m = tree.data.n_nodes
-            nodes = np.flatnonzero(~self.tried[:m])
-            dist, index = self.nearest(self.propagator.problem.goal_offset(
-                tree.data.states[nodes]), radius)
-            near = dist[:, 0] <= radius
-            nodes, dist, index = nodes[near], dist[near], index[near]
-            come = tree.data.cost_to_come(nodes)
-            total = come + self.cost_to_go(index[:, 0])
-            for r in np.argsort(total, kind="stable")[:tries]:
+            rung = np.flatnonzero((dist[:, 0] <= reach * radius) & ~self.tried[nodes])
+            for r in rung[np.argsort(total[rung], kind="stable")][:tries]:
                 if total[r] >= best or (stop is not None and stop()):
                     break
                 node = int(nodes[r])
                 self.tried[node] = True
                 made += 1
-                chain = self._steer_from(tree, node, dist[r], index[r], radius)
-                if chain is not None and come[r] + sum(e.cost for e in chain) < best:
-                    best, found = float(come[r] + sum(e.cost for e in chain)), (node, chain)
+                chain = self._steer_from(tree, node, dist[r], index[r], reach * radius)
+                cost = np.inf if chain is None else float(come[r] + sum(e.cost for e in chain))
+                if cost < best:
+                    best, found = cost, (node, chain)
         return found, made
 
     def _untried(self, tree: GrowingTree) -> np.ndarray:
