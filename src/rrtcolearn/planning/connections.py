@@ -405,7 +405,8 @@ class FunnelConnection:
             return None
         for node in dict.fromkeys((cheapest, nearest)):
             self.tried[node] = True
-            chain = self._steer_from(tree, node)
+            chain = self.steer_from(tree.data.states[node], self.dist[node],
+                                    self.index[node], self.propagator.settings.funnel_radius)
             if chain is not None:
                 return node, chain
         return None
@@ -414,7 +415,7 @@ class FunnelConnection:
                 stop: Callable[[], bool] | None = None
                 ) -> tuple[tuple[int, list[Edge]] | None, int]:
         """Choose-parent for the goal through the funnel, once a solve has reached the goal
-        at cost ``best``: continuations (`_steer_from`) from the untried nodes within each
+        at cost ``best``: continuations (`steer_from`) from the untried nodes within each
         multiple of the funnel's radius in `PARENT_REACH` in turn whose cost to come plus
         their nearest funnel state's cost to go is below ``best``, least first, at most
         ``tries`` of them per multiple (``stop()`` asked before each). ((node, edges) of the
@@ -442,7 +443,8 @@ class FunnelConnection:
                 node = int(nodes[r])
                 self.tried[node] = True
                 made += 1
-                chain = self._steer_from(tree, node, dist[r], index[r], reach * radius)
+                chain = self.steer_from(tree.data.states[node], dist[r], index[r],
+                                        reach * radius)
                 cost = np.inf if chain is None else float(come[r] + sum(e.cost for e in chain))
                 if cost < best:
                     best, found = cost, (node, chain)
@@ -465,28 +467,33 @@ class FunnelConnection:
             self.queried = m
         return np.flatnonzero(~self.tried[:m] & (self.dist[:m, 0] <= s.funnel_radius))
 
-    def _steer_from(self, tree: GrowingTree, node: int, dist: np.ndarray | None = None,
-                    index: np.ndarray | None = None, radius: float | None = None
-                    ) -> list[Edge] | None:
-        """The edges to the goal from tree node ``node`` along its nearest funnel states (the
+    def steer_from(self, x0: np.ndarray, dist: np.ndarray, index: np.ndarray, radius: float,
+                   own: bool = False) -> list[Edge] | None:
+        """The edges to the goal from state ``x0`` along its nearest funnel states ``index``
+        (global indices, at weighted distances ``dist``; those within ``radius`` in turn, the
         first whose continuation and solve succeed): one extremal, else a chain of them by
-        multiple shooting along the continuation's (`_chain`); or None. Its nearest funnel
-        states within the radius are the connection's (``dist`` None), or ``dist`` and
-        ``index`` (FUNNEL_POINTS each) within ``radius``."""
+        multiple shooting along the continuation's (`_chain`); or None. With ``own``, where
+        the continuation fails, the chain along the funnel state's own extremal
+        (`GoalFunnel.extremal`): from a state very near it, where the continuation's
+        backward solves fail for the same ill-conditioning as any single shooting
+        (`improve.start_funnel`)."""
         prop = self.propagator
         prob, sys, s = prop.problem, prop.problem.system, prop.settings
         lam, z0 = self._lam, self._z0
-        x0 = tree.data.states[node]
         offset = prob.goal_offset(x0)[0]
         # the node may be farther from the goal than the funnel state it starts from
         longest = FUNNEL_STRETCH * s.funnel_duration
-        if dist is None:
-            dist, index, radius = self.dist[node], self.index[node], s.funnel_radius
         for q in range(FUNNEL_POINTS):
             if not dist[q] <= radius:
                 break
             guess = self.steer(offset, int(index[q]), longest)
             if guess is None:
+                if own:
+                    p = int(np.searchsorted(self.starts, index[q], side="right")) - 1
+                    chain = self._chain(x0, self.parts[p].extremal(
+                        int(index[q]) - self.starts[p]), longest)
+                    if chain is not None:
+                        return chain
                 continue
             params = sys.params_from_costate(x0[None], guess.costate[None])[0]
             # the continuation's extremal as it is (exact up to the interpolation between

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from rrtcolearn.integrate import rollout_batch
-from rrtcolearn.planning.shooting import newton
+from rrtcolearn.planning.shooting import endpoints, newton
 from rrtcolearn.systems.base import System
 
 if TYPE_CHECKING:
@@ -180,6 +180,16 @@ class GoalFunnel:
     def __len__(self) -> int:
         return len(self.states)
 
+    def extremal(self, j: int) -> Continuation:
+        """Funnel state ``j``'s own extremal as a `Continuation` from it: its costate there
+        (integrated backwards from the goal again), its time to go and its goal costate."""
+        n = self.system.n_states
+        lam = self.goal_costates[self.simulation[j]]
+        duration = float(self.steps[j]) * self.dt
+        z, _ = endpoints(self.system, self.goal, np.append(lam, duration)[None],
+                         self.time_weight, -self.dt)
+        return Continuation(z[0, n : 2 * n].copy(), duration, lam.copy())
+
     def nearest(self, offsets: np.ndarray, k: int, radius: float
                 ) -> tuple[np.ndarray, np.ndarray]:
         """Weighted distances (N, k) from states given by their goal offsets (N, n) to
@@ -236,6 +246,83 @@ class GoalFunnel:
 # every stream anytime planning's solves draw from (their seeds are integers generated from
 # children (0,), (1,), ... of the query's seed sequence)
 FUNNEL_STREAM = 0x66756E6E
+AIM_STREAM = 0x61696D  # ... and, under it, the aimed search's ("aim")
+
+# `AimedSearch`: the extremals kept (nearest the target first), new draws around each per
+# round, their spread in the first round (a fraction of each steering parameter's range)
+# and its factor per round, and the rounds in all (docs/anytime.md, "Funnel extremals
+# through the start")
+AIM_POOL, AIM_DRAWS, AIM_SIGMA, AIM_SHRINK, AIM_ROUNDS = 5, 64, 0.05, 0.6, 12
+
+
+class AimedSearch:
+    """Extremals from the goal that pass through one state (a query's start), found by a
+    random local search over their steering parameters at the goal.
+
+    Where the boundary value problem from the start to the goal is too ill-conditioned for
+    Newton's method (the acrobot's 5-s swing-up: single, backward and multiple shooting from
+    the funnel extremals passing 0.85 from the start all fail), the funnel's extremals
+    still pass near the start, and the distance of an extremal to the start is a
+    continuous function of its goal costate: the search keeps the ``AIM_POOL`` extremals
+    passing nearest it (each at its nearest state), draws ``AIM_DRAWS`` new ones around
+    each (normal, ``AIM_SIGMA`` of each parameter's range, shrinking by ``AIM_SHRINK`` per
+    round) and keeps the nearest again. Each round's pool is a funnel (`GoalFunnel`) the
+    funnel connection can steer along from the start."""
+
+    def __init__(self, target: np.ndarray, system: System,
+                 offset_to: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                 rng: np.random.Generator, parts: list[GoalFunnel]):
+        self.target = np.array(target, dtype=np.float64)
+        self.system, self.offset_to, self.rng = system, offset_to, rng
+        self.rounds = 0
+        # the pool: (distance, steering parameters at the goal, cost to go from the nearest
+        # state) of each kept extremal, nearest first
+        self.pool: list[tuple[float, np.ndarray, float]] = []
+        for part in parts:
+            self._keep(part)
+
+    @property
+    def nearest(self) -> float:
+        """The weighted distance of the pool's nearest extremal to the target."""
+        return self.pool[0][0] if self.pool else float("inf")
+
+    @property
+    def cheapest(self) -> float:
+        """The least cost to go of the pool's extremals from their states nearest the
+        target: about what a path from the target along one of them would cost."""
+        return min((c for _, _, c in self.pool), default=float("inf"))
+
+    def _keep(self, funnel: GoalFunnel) -> None:
+        """The pool updated with ``funnel``'s extremals (each at its state nearest the
+        target)."""
+        if not len(funnel):
+            return
+        d = self.offset_to(funnel.states, self.target) * funnel.scale
+        dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+        order = np.argsort(dist, kind="stable")
+        _, first = np.unique(funnel.simulation[order], return_index=True)
+        best = order[first[np.argsort(dist[order[first]], kind="stable")]][:AIM_POOL]
+        lam = funnel.goal_costates[funnel.simulation[best]]
+        params = self.system.params_from_costate(np.broadcast_to(funnel.goal, lam.shape), lam)
+        self.pool = sorted(self.pool + list(zip(dist[best].tolist(), params,
+                                                funnel.cost_to_go[best].tolist(),
+                                                strict=True)), key=lambda e: e[0])[:AIM_POOL]
+
+    def step(self, build: Callable[[np.ndarray], GoalFunnel]) -> GoalFunnel | None:
+        """One round (None once ``AIM_ROUNDS`` are done or the pool is empty): draws around
+        the pool's extremals, the nearest kept; the funnel of the pool's extremals."""
+        if self.rounds >= AIM_ROUNDS or not self.pool:
+            return None
+        sys = self.system
+        lo, hi = sys.param_low, sys.param_high
+        sigma = AIM_SIGMA * AIM_SHRINK ** self.rounds * (hi - lo)
+        self.rounds += 1
+        centres = np.array([p for _, p, _ in self.pool])
+        draws = centres[:, None, :] + sigma * self.rng.standard_normal(
+            (len(centres), AIM_DRAWS, len(lo)))
+        self._keep(build(np.clip(draws.reshape(-1, len(lo)), lo, hi)))
+        return build(np.array([p for _, p, _ in self.pool]))
+
 
 
 class FunnelStream:
@@ -252,11 +339,16 @@ class FunnelStream:
     before it: the plans stay a function of their seeds. A stream serves one planner (the
     parts are its funnel's, of its settings)."""
 
-    def __init__(self, rng: np.random.Generator):
+    def __init__(self, rng: np.random.Generator, aim_rng: np.random.Generator | None = None):
         self._rng = rng
         self._params: np.ndarray | None = None  # (drawn, p): the stream's parameters so far
         self.parts: dict[tuple[int, int], GoalFunnel] = {}  # (first, k) -> the part
         self.built = 0  # parts built (each once)
+        # the funnel's builder from steering parameters (the last part's), and the search
+        # for extremals through the query's start (`aimed`), with a generator of its own
+        self.build: Callable[[np.ndarray], GoalFunnel] | None = None
+        self._aim_rng = aim_rng
+        self._aimed: AimedSearch | None = None
 
     @classmethod
     def of_query(cls, query: int | np.random.SeedSequence) -> FunnelStream:
@@ -267,7 +359,8 @@ class FunnelStream:
                                          spawn_key=(*query.spawn_key, FUNNEL_STREAM))
         else:
             seq = np.random.SeedSequence(int(query), spawn_key=(FUNNEL_STREAM,))
-        return cls(np.random.default_rng(seq))
+        aim = np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, AIM_STREAM))
+        return cls(np.random.default_rng(seq), np.random.default_rng(aim))
 
     def draws(self) -> FunnelDraws:
         """One funnel's parts in turn, from the stream's first extremal (`GoalFunnel.build`
@@ -280,6 +373,7 @@ class FunnelStream:
         first time, then the same part. The stream's parameters are drawn in order (a
         generator's uniform draws split into several calls are the same numbers as in one)."""
         key = (first, k)
+        self.build = build
         if key not in self.parts:
             p = system.n_params
             have = 0 if self._params is None else len(self._params)
@@ -291,6 +385,20 @@ class FunnelStream:
             self.parts[key] = build(self._params[first : first + k])
             self.built += 1
         return self.parts[key]
+
+    def aimed(self, start: np.ndarray, system: System,
+              offset_to: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> AimedSearch | None:
+        """The search for extremals through ``start`` (`AimedSearch`), seeded with the
+        extremals of the parts built so far that pass nearest it; kept for the query's
+        later calls. None before any part is built, or for another start."""
+        if self.build is None or not self.parts:
+            return None
+        if self._aimed is None:
+            if self._aim_rng is None:  # (a stream not made by `of_query`)
+                self._aim_rng = np.random.default_rng(self._rng.bit_generator.seed_seq.spawn(1)[0])
+            self._aimed = AimedSearch(start, system, offset_to, self._aim_rng,
+                                      list(self.parts.values()))
+        return self._aimed if np.array_equal(self._aimed.target, start) else None
 
     def __len__(self) -> int:
         """Extremals drawn so far."""

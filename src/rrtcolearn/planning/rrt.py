@@ -275,6 +275,10 @@ class RRTCoLearn:
             self._funnel = (key, FunnelStream.of_query(query))
         return self._funnel[1]
 
+    def query_funnel(self) -> FunnelStream | None:
+        """The goal funnel's stream of the last query solved (`funnel_stream`), or None."""
+        return None if self._funnel is None else self._funnel[1]
+
     def connection(self, name: str, funnel: FunnelStream, tree: GrowingTree,
                    size: int | None = None) -> Connection:
         """The planner's goal connection ``name`` ("shooting", "funnel", "lqr"), built for a
