@@ -770,8 +770,11 @@ def shortcut(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = 
     """``plan`` improved in its own tree: its tail replaced by an extremal or an LQR chain
     into the goal region (`goal_shortcuts`), then stretches of what is left by single
     extremals (`interior_shortcuts`), then stretches by single extremals over the same
-    duration (`landed_shortcuts`); ``stop`` as all three take it. The anytime scheme's ``improve``
-    (``plan.anytime``).
+    duration (`landed_shortcuts`), then the whole path by the goal funnel's extremal
+    through the start where one undercuts it (`start_funnel`, last: it takes what the
+    others leave of the allowance; run first it cost the acrobot's shortcuts their gains,
+    median 4.63x -> 5.11x on seeds 0-7); ``stop`` as all four take it. The anytime scheme's
+    ``improve`` (``plan.anytime``).
 
     Not `multiple_shooting`: within this allowance it was cut on 341 of 343 tries (run
     last) or took the allowance the goal and interior shortcuts pay with (run first); the
