@@ -56,6 +56,20 @@ def _backwards(system, params: np.ndarray) -> np.ndarray:
     return rk4(rhs, np.r_[GOAL, lam[0], 0.0], -DT, round(DURATION / DT))[:, :4]
 
 
+def _dear_plan(system, problem, stream: FunnelStream | None):
+    """A planner stand-in whose last query's funnel is ``stream`` (what `start_funnel` asks
+    of a planner) and a solved plan whose path is one held-input edge costing 10^6."""
+    settings = PlannerSettings(dt=DT, funnel_duration=DURATION, funnel_max_cost=500.0)
+    planner = types.SimpleNamespace(problem=problem, propagator=Propagator(problem, settings),
+                                    settings=settings, query_funnel=lambda: stream)
+    tree = PlannerData(START, system.n_params, n_inputs=system.n_inputs)
+    dear = Edge(np.vstack([START, START + 0.01]), 1, 1e6, 0.0, True, control=np.zeros(1))
+    node = add_edge(tree, 0, dear, DT)
+    return planner, Plan(system="acrobot", start=START, goal=GOAL, goal_tolerance=TOLERANCE,
+                         time_weight=1.0, dt=DT, status="exact", planning_time_s=0.0,
+                         planning_cpu_s=0.0, iterations=1, tree=tree, path_nodes=[0, node])
+
+
 def test_the_search_comes_nearer_the_start_and_its_extremals_pass_where_it_says(acrobot):
     """Each round's pool is at least as near the start as the last; after the rounds its
     nearest extremal passes far nearer than any of the funnel's own. That extremal,
@@ -95,15 +109,8 @@ def test_a_path_from_the_start_replaces_a_dearer_one_and_resimulates(acrobot):
     the next begins and costs what it records; the last ends in the goal region."""
     system, problem = acrobot
     stream = _stream(system, problem)
-    settings = PlannerSettings(dt=DT, funnel_duration=DURATION, funnel_max_cost=500.0)
-    planner = types.SimpleNamespace(problem=problem, propagator=Propagator(problem, settings),
-                                    settings=settings, query_funnel=lambda: stream)
-    tree = PlannerData(START, system.n_params, n_inputs=system.n_inputs)
-    dear = Edge(np.vstack([START, START + 0.01]), 1, 1e6, 0.0, True, control=np.zeros(1))
-    node = add_edge(tree, 0, dear, DT)
-    plan = Plan(system="acrobot", start=START, goal=GOAL, goal_tolerance=TOLERANCE,
-                time_weight=1.0, dt=DT, status="exact", planning_time_s=0.0,
-                planning_cpu_s=0.0, iterations=1, tree=tree, path_nodes=[0, node])
+    planner, plan = _dear_plan(system, problem, stream)
+    tree, node = plan.tree, plan.path_nodes[1]
     out = improve.start_funnel(planner, plan)
     record = out.extra["start_funnel"]
     assert record["kept"] and record["rounds"] == AIM_ROUNDS and record["tries"] >= 1
@@ -126,15 +133,8 @@ def test_a_path_from_the_start_replaces_a_dearer_one_and_resimulates(acrobot):
 def test_without_a_funnel_the_plan_is_unchanged(acrobot):
     """No funnel built for the query (or no query solved): nothing to aim, the same plan."""
     system, problem = acrobot
-    settings = PlannerSettings(dt=DT)
-    planner = types.SimpleNamespace(problem=problem, propagator=Propagator(problem, settings),
-                                    settings=settings, query_funnel=lambda: None)
-    tree = PlannerData(START, system.n_params, n_inputs=system.n_inputs)
-    dear = Edge(np.vstack([START, START + 0.01]), 1, 1e6, 0.0, True, control=np.zeros(1))
-    node = add_edge(tree, 0, dear, DT)
-    plan = Plan(system="acrobot", start=START, goal=GOAL, goal_tolerance=TOLERANCE,
-                time_weight=1.0, dt=DT, status="exact", planning_time_s=0.0,
-                planning_cpu_s=0.0, iterations=1, tree=tree, path_nodes=[0, node])
+    planner, plan = _dear_plan(system, problem, None)
+    node = plan.path_nodes[1]
     out = improve.start_funnel(planner, plan)
     assert out.path_nodes == [0, node]
     assert out.extra["start_funnel"] == {"rounds": 0, "nearest": None, "tries": 0,
