@@ -292,13 +292,17 @@ class AimedSearch:
         target: about what a path from the target along one of them would cost."""
         return min((c for _, _, c in self.pool), default=float("inf"))
 
+    def distances(self, funnel: GoalFunnel) -> np.ndarray:
+        """The weighted distance of each of ``funnel``'s states to the target (M,)."""
+        d = self.offset_to(funnel.states, self.target) * funnel.scale
+        return np.sqrt(np.einsum("ij,ij->i", d, d))
+
     def _keep(self, funnel: GoalFunnel) -> None:
         """The pool updated with ``funnel``'s extremals (each at its state nearest the
         target)."""
         if not len(funnel):
             return
-        d = self.offset_to(funnel.states, self.target) * funnel.scale
-        dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+        dist = self.distances(funnel)
         order = np.argsort(dist, kind="stable")
         _, first = np.unique(funnel.simulation[order], return_index=True)
         best = order[first[np.argsort(dist[order[first]], kind="stable")]][:AIM_POOL]

@@ -740,8 +740,7 @@ def start_funnel(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | Non
             break
         record["rounds"] += 1
         # the pool's nearest extremal, at its nearest state, if new and within the radius
-        d = prob.offset_to(funnel.states, x0) * funnel.scale
-        dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+        dist = search.distances(funnel)
         j = int(np.argmin(dist)) if len(dist) else -1
         if j < 0 or dist[j] > radius or dist[j] > AIM_RETRY * tried or \
                 funnel.cost_to_go[j] >= best:
