@@ -223,20 +223,20 @@ def test_a_long_paths_pairwise_search_obeys_stop(paper_model):
     """On a path of 3 000 edges the interior search asks the model about one block of
     stretches, then stops when ``stop()`` turns true (no stretch tried); without a stop it
     asks about pairs of at most PAIR_NODES evenly spaced nodes, not all 4.5 million."""
-    from rrtcolearn.planning import improve
+    from rrtcolearn.planning.improve import common, interior
 
     planner = swingup_planner(paper_model)
     first = first_solution(planner, 3)
     counting = _CountingModel(planner.model)
     planner.model = counting
     p = _long_path(planner, first, 3000)
-    q = improve.interior_shortcuts(planner, p, stop=lambda: counting.calls > 0)
-    assert counting.calls == 1 and counting.rows == improve.PAIR_BLOCK
+    q = interior.interior_shortcuts(planner, p, stop=lambda: counting.calls > 0)
+    assert counting.calls == 1 and counting.rows == interior.PAIR_BLOCK
     assert q.extra["interior"]["stretches"] == 0 and q.path_nodes == p.path_nodes
     counting.rows = counting.calls = 0
     come = np.concatenate([[0.0], np.cumsum(p.tree.costs[p.path_nodes[1:]])])
-    improve._pairs(planner, p.tree, p.path_nodes, come, set())
-    pairs = improve.PAIR_NODES * (improve.PAIR_NODES - 1) // 2
-    assert 0 < counting.rows <= pairs and counting.calls == -(-counting.rows // improve.PAIR_BLOCK)
-    assert improve._stations(3000).size == improve.PAIR_NODES
-    assert np.array_equal(improve._stations(40), np.arange(40))
+    interior._pairs(planner, p.tree, p.path_nodes, come, set())
+    pairs = common.PAIR_NODES * (common.PAIR_NODES - 1) // 2
+    assert 0 < counting.rows <= pairs and counting.calls == -(-counting.rows // interior.PAIR_BLOCK)
+    assert common._stations(3000).size == common.PAIR_NODES
+    assert np.array_equal(common._stations(40), np.arange(40))

@@ -108,7 +108,7 @@ def test_stop_and_never_dearer(paper_model):
 def test_segments_follow_the_path():
     """Path nodes merged greedily into segments of at most the longest duration; an edge
     longer than that is a segment of its own."""
-    from rrtcolearn.planning.improve import _segments
+    from rrtcolearn.planning.improve.multiple import _segments
 
     assert _segments(np.array([1.0, 1.0, 1.0, 1.0]), 2.0) == [0, 2]
     assert _segments(np.array([0.5, 3.0, 0.5, 0.5]), 1.0) == [0, 1, 2]

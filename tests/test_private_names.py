@@ -5,7 +5,7 @@ The rule, checked on the source with `ast` (no import):
 - attribute access ``obj._name`` (not a dunder) where ``obj`` is not ``self`` or ``cls`` is
   an error unless ``_name`` is defined in the same module (a function, class, assignment,
   attribute assignment, argument or import of that name): ``planner._shoot_edge(...)`` in
-  improve.py is one, ``other._size`` inside the class that assigns ``self._size`` is not;
+  improve/goal.py is one, ``other._size`` inside the class that assigns ``self._size`` is not;
 - in the planning package, ``from ... import _name`` is an error too.
 Tests may still reach into private names (e.g. a compiled kernel's signatures).
 """

@@ -1,0 +1,145 @@
+"""Goal shortcuts (`goal_shortcuts`): A first solution is a chain of extremals (and, with an
+input box, constant-input edges) with a jump in the costate at every node: each edge is
+locally optimal, the chain is not. The optimum of a free-final-time problem is a single
+extremal from the start to the goal region (Pontryagin), so the path gets cheaper as its
+tail is replaced by one extremal from ever earlier nodes.
+
+`goal_shortcuts` walks the path backwards from the last edge's parent to the root. From
+node i it tries two kinds of tail into the goal region:
+- one extremal by shooting (`shooting.shoot`) from two guesses: the path's own edge out of i
+  (its steering parameters, with the duration of the rest of the path: the chain after i is
+  what the extremal has to straighten), and U's prediction for (x_i, goal) where the learned
+  J says that edge may be cheaper;
+- the LQR goal loop (`lqr.GoalLQR`, as the planner's LQR connection runs it: a chain of
+  constant-input edges), where the settings allow it and the goal has an equilibrium.
+The cheapest tail that reaches the goal region, passes every check of a planner edge (state
+box, obstacles, input limit) and makes the cost to come of x_i plus its cost less than the
+best path's is added to the tree as new leaves below node i, and becomes the best path; the
+walk goes on from the node before i on that path. Nothing in the tree is moved or deleted,
+so the tree stays a tree: every node is reached from the root by edges that re-simulate, and
+its cost to come is the sum of its path's edge costs.
+
+The longest extremal worth shooting from node i is bounded by the cost: one that ends the
+path cheaper lasts at most (best - cost to come of x_i) / w.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from rrtcolearn.planning.connections import (
+    goal_lqr,
+    lqr_chain,
+    shoot_edge,
+)
+from rrtcolearn.planning.contracts import Edge, add_edge
+from rrtcolearn.planning.improve.common import (
+    costs_to_come,
+    recorded,
+)
+from rrtcolearn.planning.learned import goal_query
+from rrtcolearn.planning.tree import Plan
+
+if TYPE_CHECKING:
+    from rrtcolearn.planning.rrt import RRTCoLearn
+
+def goal_shortcuts(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = None
+                   ) -> Plan:
+    """``plan`` (solved, from ``planner``'s last `solve`) with its tail replaced by a single
+    extremal or an LQR chain to the goal wherever that is cheaper; the same plan when nothing
+    is.
+
+    ``planner`` is the `RRTCoLearn` that made the plan (its problem, settings, learned U and
+    edge checks, ``planner.propagator``, are used). Stops early once ``stop()`` is true
+    (checked before each node). ``extra["shortcuts"]`` records the edges added, the shots
+    and the LQR loops tried.
+    """
+    if not plan.solved or len(plan.path_nodes) < 3:
+        return plan
+    prob, sys, s = planner.problem, planner.problem.system, planner.settings
+    n = sys.n_states
+    w = s.time_weight
+    tree = plan.tree
+    lam, z0 = np.empty(n), np.empty(2 * n + 1)
+    # the LQR connection's loop, where the settings allow it and the goal has an equilibrium
+    prop = planner.propagator
+    lqr = goal_lqr(prop) if s.goal_lqr is not False else None
+    if isinstance(lqr, str):  # no equilibrium at the goal, or an unstable loop
+        lqr = None
+    can_shoot = sys.params_from_costate is not None
+    path = list(plan.path_nodes)
+    best = float(costs_to_come(tree, path)[-1])
+    added, shots, loops = 0, 0, 0
+    pos = len(path) - 2  # the last edge's parent: U's guess may beat the edge the tree had
+    while pos >= 0:
+        if stop is not None and stop():
+            break
+        come = costs_to_come(tree, path)
+        node = path[pos]
+        budget = (best - come[pos]) / w if w > 0 else np.inf
+        if budget <= s.dt:
+            pos -= 1
+            continue
+        x0 = tree.states[node]
+        tails = []  # chains of edges from x0 into the goal region
+        guesses = []
+        child = path[pos + 1]
+        if can_shoot and not np.isnan(tree.costates[child]).any():
+            rest = float(np.sum(tree.durations[path[pos + 1:]]))
+            guesses.append((tree.params[child], min(rest, budget)))
+        if can_shoot and planner.model is not None:
+            # U's guess where J says the edge may be cheaper (V's verdict is not asked: far
+            # from the data U's guess still converges often enough to pay)
+            query = goal_query(x0, sys.wrap_shift(x0[None])[0], prob.goal_offset(x0[None])[0])
+            j, u, _ = (a[0] for a in planner.model.query(query))
+            if come[pos] + j < best:
+                guesses.append((u[:-1], min(max(u[-1], s.dt), budget)))
+        for params, duration in guesses:
+            shots += 1
+            edge = shoot_edge(prop, x0, params, duration, max(budget, s.dt), lam, z0)
+            if edge is not None:
+                tails.append([edge])
+        if lqr is not None:
+            loops += 1
+            chain, _ = lqr_chain(prop, lqr, x0)
+            if chain is not None:
+                tails.append(chain)
+        costs = [sum(e.cost for e in t) for t in tails]
+        if costs and come[pos] + min(costs) < best - 1e-9:
+            parent = node
+            path = path[: pos + 1]
+            tail = tails[int(np.argmin(costs))]
+            for edge in tail:
+                parent = add_edge(tree, parent, edge, s.dt)
+                # a shortcut is one extremal by shooting, or an LQR chain of held inputs
+                tree.made_by[parent] = "lqr" if edge.control is not None else "shooting"
+                path.append(parent)
+                added += 1
+            best = float(come[pos] + min(costs))
+        pos -= 1
+    return recorded(plan, prop, path if added else None, "shortcuts",
+                     {"added": added, "shots": shots, "lqr_loops": loops})
+
+
+def goal_tail(planner: RRTCoLearn, lqr, x0: np.ndarray, budget: float,
+               lam: np.ndarray, z0: np.ndarray) -> list[Edge] | None:
+    """The cheaper of U's extremal by shooting and the LQR chain from ``x0`` into the goal
+    region (the goal walk's tails), or None."""
+    prop, s = planner.propagator, planner.settings
+    prob, sys = planner.problem, planner.problem.system
+    tails = []
+    if planner.model is not None:
+        query = goal_query(x0, sys.wrap_shift(x0[None])[0], prob.goal_offset(x0[None])[0])
+        u = planner.model.query(query)[1][0]
+        edge = shoot_edge(prop, x0, u[:-1], min(max(u[-1], s.dt), budget), max(budget, s.dt),
+                          lam, z0)
+        if edge is not None:
+            tails.append([edge])
+    if lqr is not None:
+        chain, _ = lqr_chain(prop, lqr, x0)
+        if chain is not None:
+            tails.append(chain)
+    return min(tails, key=lambda t: sum(e.cost for e in t), default=None)
