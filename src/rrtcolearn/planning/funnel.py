@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -54,7 +55,9 @@ class GoalFunnel:
     simulation (M,) and its time to go in RK4 steps (M,); ``goal_costates`` (S, n) are the
     simulations' costates at the goal. ``offset`` is the goal test's state-minus-goal; the
     states' offsets are not kept (the index holds them scaled): of millions of states
-    (the acrobot's 2.8 million) they were a third of the funnel's memory."""
+    (the acrobot's 2.8 million) they were a third of the funnel's memory. The index is
+    built when first asked for (`index`): the aimed search's funnels (`AimedSearch`) are
+    never searched by it."""
 
     system: System
     goal: np.ndarray
@@ -65,9 +68,21 @@ class GoalFunnel:
     goal_costates: np.ndarray
     offset: Callable[[np.ndarray], np.ndarray]
     scale: np.ndarray
-    index: cKDTree
     time_weight: float
     dt: float
+
+    @cached_property
+    def index(self) -> cKDTree:
+        """The kd-tree of the states' goal offsets times ``scale``, built on first use."""
+        from scipy.spatial import cKDTree  # (here: a plan's start-up does not import it)
+
+        # split at the midpoint of the widest side, without the median's partial sorts, no
+        # shrinking of the nodes' boxes, leaves of up to 32 points (scipy's default 16):
+        # a faster build of the same points (0.5-0.7 s instead of 1.0-1.4 s for the 1.7-2.8
+        # million states of the acrobot's, cart-pole's and pendulum's funnels), queries no
+        # slower, the same neighbours and distances (an exact search either way)
+        return cKDTree(self.offsets * self.scale, leafsize=32, balanced_tree=False,
+                       compact_nodes=False)
 
     @property
     def offsets(self) -> np.ndarray:
@@ -161,21 +176,12 @@ class GoalFunnel:
         del kept_states, kept_sims, kept_steps, kept_costs  # (each held once from here on)
         offsets = offset(states) if len(states) else states
         outside = np.einsum("ij,ij->i", offsets, offsets) > tolerance**2
+        del offsets
         states, sims, steps, to_go = states[outside], sims[outside], steps[outside], \
             to_go[outside]
-        offsets = offsets[outside]
-        scale = np.asarray(scale, dtype=np.float64)
-        offsets *= scale  # the index's points: the offsets scaled, in place
-        from scipy.spatial import cKDTree  # (here: a plan's start-up does not import it)
-
-        # split at the midpoint of the widest side, without the median's partial sorts, no
-        # shrinking of the nodes' boxes, leaves of up to 32 points (scipy's default 16):
-        # a faster build of the same points (0.5-0.7 s instead of 1.0-1.4 s for the 1.7-2.8
-        # million states of the acrobot's, cart-pole's and pendulum's funnels), queries no
-        # slower, the same neighbours and distances (an exact search either way)
-        index = cKDTree(offsets, leafsize=32, balanced_tree=False, compact_nodes=False)
         return cls(system, goal, states, sims.astype(np.int32), steps.astype(np.int32), to_go,
-                   lam, offset, scale, index, float(time_weight), float(dt))
+                   lam, offset, np.asarray(scale, dtype=np.float64), float(time_weight),
+                   float(dt))
 
     def __len__(self) -> int:
         return len(self.states)
