@@ -30,16 +30,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rrtcolearn.planning.connections import (
-    goal_lqr,
-    lqr_chain,
-    shoot_edge,
-)
+from rrtcolearn.planning.connections import goal_lqr, lqr_chain, shoot_edge
 from rrtcolearn.planning.contracts import Edge, add_edge
-from rrtcolearn.planning.improve.common import (
-    costs_to_come,
-    recorded,
-)
+from rrtcolearn.planning.improve.common import costs_to_come, recorded
 from rrtcolearn.planning.learned import goal_query
 from rrtcolearn.planning.tree import Plan
 

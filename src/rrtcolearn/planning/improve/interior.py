@@ -17,11 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rrtcolearn.planning.connections import (
-    LAND_TOLERANCE,
-    SHOOT_TOLERANCE,
-    goal_lqr,
-)
+from rrtcolearn.planning.connections import LAND_TOLERANCE, SHOOT_TOLERANCE, goal_lqr
 from rrtcolearn.planning.contracts import Edge
 from rrtcolearn.planning.improve.common import (
     INTERIOR_MISSES,

@@ -8,9 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rrtcolearn.planning.connections import (
-    LAND_TOLERANCE,
-)
+from rrtcolearn.planning.connections import LAND_TOLERANCE
 from rrtcolearn.planning.contracts import Edge
 from rrtcolearn.planning.improve.common import (
     INTERIOR_MISSES,

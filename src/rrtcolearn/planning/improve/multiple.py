@@ -16,10 +16,7 @@ from rrtcolearn.planning.connections import (
     terminal_conditions,
 )
 from rrtcolearn.planning.contracts import add_edge
-from rrtcolearn.planning.improve.common import (
-    costs_to_come,
-    recorded,
-)
+from rrtcolearn.planning.improve.common import costs_to_come, recorded
 from rrtcolearn.planning.shooting import multiple_shoot
 from rrtcolearn.planning.tree import Plan
 

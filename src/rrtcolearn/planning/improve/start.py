@@ -8,14 +8,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rrtcolearn.planning.connections import (
-    FunnelConnection,
-)
+from rrtcolearn.planning.connections import FunnelConnection
 from rrtcolearn.planning.contracts import add_edge
-from rrtcolearn.planning.improve.common import (
-    costs_to_come,
-    recorded,
-)
+from rrtcolearn.planning.improve.common import costs_to_come, recorded
 from rrtcolearn.planning.tree import Plan
 
 if TYPE_CHECKING:
