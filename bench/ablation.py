@@ -257,12 +257,11 @@ def anytime_plan(planner, seed: int, budget: float, resolved: bool = True):
     from rrtcolearn.planning.improve import multiple_shooting, shortcut
     from rrtcolearn.planning.termination import TerminationCondition
 
+    accept = None if not resolved else partial(is_resolved, planner.problem)
     return solve_with_restarts(planner.solve, TerminationCondition(None, None, budget), seed,
-                               improve=partial(shortcut, planner),
+                               improve=partial(shortcut, planner, accept=accept),
                                narrowest=planner.narrowest_control_scale(),
-                               first=partial(multiple_shooting, planner),
-                               accept=None if not resolved else partial(is_resolved,
-                                                                        planner.problem))
+                               first=partial(multiple_shooting, planner), accept=accept)
 
 
 def anytime(planner, seed: int, budget: float) -> dict:

@@ -33,7 +33,7 @@ def test_the_tree_stays_a_tree_of_exact_edges(paper_model, u_max):
     assert q.path_cost < first_cost
     # only leaves were added, below earlier nodes: every node reaches the root
     assert t.n_nodes == first_nodes + q.extra["shortcuts"]["added"] + \
-        q.extra["interior"]["added"]
+        q.extra["interior"]["added"] + q.extra["pieces"]["added"] + q.extra["pieces"]["pieces"]
     assert t.parents[0] == -1 and all(t.parents[k] < k for k in range(1, t.n_nodes))
     assert q.path_nodes == t.path_to(q.path_nodes[-1])
     # every edge of the tree re-simulates from its parent to its node at its cost
@@ -240,3 +240,89 @@ def test_a_long_paths_pairwise_search_obeys_stop(paper_model):
     assert 0 < counting.rows <= pairs and counting.calls == -(-counting.rows // interior.PAIR_BLOCK)
     assert common._stations(3000).size == common.PAIR_NODES
     assert np.array_equal(common._stations(40), np.arange(40))
+
+
+@pytest.mark.parametrize("u_max", [None, 2.0])
+def test_pieces_cut_the_path_and_resimulate(paper_model, u_max):
+    """`interior._pieces` (`piece_shortcuts`' stations along the edges): the path cut into
+    about 40 pieces passes through every state of the original path in order, costs the
+    same (to rounding) and lasts the same, each piece re-simulated by the suite's plain RK4
+    ends where it says at its cost and keeps the input limit, `check_plan` agrees (each
+    piece's own largest |u|), and every new node names the path node whose edge it cuts."""
+    from dataclasses import replace
+
+    from rrtcolearn.evaluate import check_plan
+    from rrtcolearn.planning.improve.interior import _pieces
+
+    planner = swingup_planner(paper_model, u_max)
+    p = first_solution(planner, 3)
+    old = list(p.path_nodes)
+    new, origin = _pieces(planner, p.tree, old, 40)
+    t = p.tree
+    assert len(old) < len(new) <= 40 + len(old)
+    assert set(origin.values()) <= set(old[1:])
+    # the original nodes' states appear in order along the new path
+    at = [next(k for k in range(len(new)) if np.array_equal(t.states[new[k]], t.states[i]))
+          for i in old]
+    assert at == sorted(at) and at[-1] == len(new) - 1
+    assert np.sum(t.costs[new[1:]]) == pytest.approx(p.path_cost, rel=1e-12)
+    assert np.sum(t.durations[new[1:]]) == pytest.approx(p.path_duration, rel=1e-12)
+    for node in old[1:]:  # each edge's pieces (or its copy) last as long as it
+        assert sum(t.durations[k] for k in new[1:] if origin.get(k, k) == node) == \
+            pytest.approx(t.durations[node], rel=1e-12)
+    q = replace(p, path_nodes=new)
+    assert_path_resimulates(q, u_max)
+    r = check_plan(paper_model.system, q, goal_fn=planner.problem.goal_distance)
+    assert r["path_cost"] == pytest.approx(p.path_cost, rel=1e-9)
+
+
+def test_piece_shortcuts_keep_the_tree_and_never_cost_more(paper_model):
+    """`piece_shortcuts` on the first paths of seeds 0-5 (|u| <= 2): never dearer; only
+    leaves added (the pieces and the shortcuts' edges); where it shortens a path, the
+    path re-simulates by the suite's plain RK4; the same plan gives the same path."""
+    from rrtcolearn.planning.improve import piece_shortcuts
+
+    planner = swingup_planner(paper_model, 2.0)
+    gained = 0
+    for seed in range(6):
+        p = first_solution(planner, seed)
+        first, before = p.path_cost, tree_snapshot(p.tree)
+        q = piece_shortcuts(planner, p)
+        rec = q.extra["pieces"]
+        assert q.path_cost <= first
+        assert_grown_by_leaves(before, q, rec["added"] + rec["pieces"], paper_model.system)
+        again = piece_shortcuts(planner, first_solution(planner, seed))
+        assert again.to_dict()["path"] == q.to_dict()["path"]
+        if q.path_cost < first:
+            gained += 1
+            assert_path_resimulates(q, 2.0)
+    assert gained >= 1
+
+
+
+@pytest.mark.parametrize("verdict", [False, True])
+def test_a_pieces_path_turned_down_leaves_the_path_before_them(paper_model, monkeypatch,
+                                                                verdict):
+    """`shortcut` asks ``accept`` about the pieces' pass's new path only: turned down, the
+    plan is the one the pass was given (the other shortcuts' gains kept), recorded as not
+    accepted; taken, the pass's. (The pass stands in here: on the pendulum the other
+    shortcuts leave one extremal, nothing to cut.)"""
+    from dataclasses import replace
+
+    from rrtcolearn.planning import improve
+
+    given, asked = [], []
+
+    def stand_in(planner, plan, stop=None):
+        given.append(plan)
+        return replace(plan, extra={**plan.extra, "pieces": {"kept": 1}})
+
+    monkeypatch.setattr(improve, "piece_shortcuts", stand_in)
+    planner = swingup_planner(paper_model, 2.0)
+    out = shortcut(planner, first_solution(planner, 1),
+                   accept=lambda q: asked.append(q) or verdict)
+    assert len(given) == 1 and len(asked) == 1 and asked[0] is not given[0]
+    if verdict:
+        assert out is asked[0] and out.extra["pieces"] == {"kept": 1}
+    else:
+        assert out is given[0] and out.extra["pieces"] == {"kept": 1, "not_accepted": True}

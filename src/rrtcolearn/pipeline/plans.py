@@ -124,7 +124,7 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
 
         polish = not cfg.plan.anytime
         result = solve_with_restarts(planner.solve, termination, seed,
-                                     improve=partial(shortcut, planner),
+                                     improve=partial(shortcut, planner, accept=checks),
                                      narrowest=planner.narrowest_control_scale(),
                                      first=partial(multiple_shooting, planner),
                                      accept=checks,

@@ -13,14 +13,17 @@ cheaper. docs/anytime.md has what it gains, system by system.
 from __future__ import annotations
 
 from collections.abc import Callable
+from itertools import pairwise
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from rrtcolearn.integrate import rollout
 from rrtcolearn.planning.connections import LAND_TOLERANCE, SHOOT_TOLERANCE, goal_lqr
 from rrtcolearn.planning.contracts import Edge
 from rrtcolearn.planning.improve.common import (
     INTERIOR_MISSES,
+    PAIR_NODES,
     costs_to_come,
     grafted,
     reattached,
@@ -42,9 +45,68 @@ if TYPE_CHECKING:
 PAIR_BLOCK = 4096
 
 
+def _pieces(planner: RRTCoLearn, tree: PlannerData, path: list[int], count: int
+            ) -> tuple[list[int], dict[int, int]]:
+    """``path`` with its edges cut into pieces of at most ``span`` RK4 steps, the span such
+    that the path has about ``count`` nodes, added as new leaves (the edges after the first
+    one cut copied below the pieces), and a dict from each new node to the path node whose
+    edge it is (a piece of). A piece's states are its edge's own (its stored trajectory);
+    an extremal piece starts with the edge's costate integrated again to its start (an
+    edge whose integration does not give back its states and cost is kept whole) and
+    records its own largest |u*|, a held input's piece holds the same input. The same path
+    and {} where no edge is longer."""
+    s, sys, prop = planner.settings, planner.problem.system, planner.propagator
+    n = sys.n_states
+    steps = [len(tree.trajectories[i]) - 1 for i in path[1:]]
+    span = max(1, -(-sum(steps) // max(1, count)))
+    if not steps or max(steps) <= span:
+        return path, {}
+    new, origin, parent = [path[0]], {}, path[0]
+    for node, k in zip(path[1:], steps, strict=True):
+        traj = tree.trajectories[node]
+        held = not np.isnan(tree.controls[node]).any()
+        z = None
+        if k > span and not held:
+            z = rollout(sys, np.concatenate([tree.states[tree.parents[node]], tree.costates[node],
+                                             [0.0]]), s.time_weight, s.dt, k)
+            if not (np.array_equal(z[:, :n], traj[:, :n]) and
+                    abs(z[-1, 2 * n] - tree.costs[node]) <= 1e-9 * max(1.0, abs(tree.costs[node]))):
+                z = None
+        cut = k > span and (held or z is not None)
+        if not cut and parent == tree.parents[node]:
+            new.append(node)
+            parent = node
+            continue
+        bounds = [*range(0, k, span), k] if cut else [0, k]
+        for s0, s1 in pairwise(bounds):
+            if held:
+                u = tree.controls[node]
+                cost = tree.costs[node] if not cut else (s1 - s0) * s.dt * prop.hold_rate(u)
+                child = tree.add(traj[s1, :n], parent, np.full(n, np.nan),
+                                 np.full(tree.params.shape[1], np.nan), (s1 - s0) * s.dt, cost,
+                                 traj[s0 : s1 + 1], tree.max_abs_u[node], control=u)
+            elif not cut:
+                child = tree.add(tree.states[node], parent, tree.costates[node],
+                                 tree.params[node], tree.durations[node], tree.costs[node],
+                                 traj, tree.max_abs_u[node])
+            else:
+                lam0 = z[s0, n : 2 * n]
+                params = sys.params_from_costate(z[s0, :n][None], lam0[None])[0]
+                top = max(sys.input_max_abs_jit(z[r]) for r in range(s0, s1 + 1))
+                child = tree.add(traj[s1, :n], parent, lam0, params, (s1 - s0) * s.dt,
+                                 float(z[s1, 2 * n] - z[s0, 2 * n]), traj[s0 : s1 + 1, :n],
+                                 float(top))
+            if node in tree.made_by:
+                tree.made_by[child] = tree.made_by[node]
+            origin[child] = origin.get(node, node)
+            new.append(child)
+            parent = child
+    return new, origin
+
+
 def _pairs(planner: RRTCoLearn, tree: PlannerData, path: list[int], come: np.ndarray,
-           tried: set[tuple[int, int]], stop: Callable[[], bool] | None = None
-           ) -> list[tuple[int, int, float, np.ndarray]]:
+           tried: set[tuple[int, int]], stop: Callable[[], bool] | None = None,
+           origin: dict[int, int] | None = None) -> list[tuple[int, int, float, np.ndarray]]:
     """Stretches of ``path`` worth a shortcut, most promising first: positions (a, b),
     0 <= a < b < the path's last node (among `common.station_pairs`), spanning two edges or more or
     one held input, not tried yet, where V accepts the query (x_a, x_b) and J predicts one
@@ -55,6 +117,9 @@ def _pairs(planner: RRTCoLearn, tree: PlannerData, path: list[int], come: np.nda
     held = np.isnan(tree.costates[path]).any(axis=1)  # node's edge is a held input
     a, b = station_pairs(len(path) - 1)
     keep = (b - a >= 2) | held[b]
+    if origin:  # not within one extremal cut into pieces (`_pieces`): it is one already
+        of = np.array([origin.get(i, i) for i in path])
+        keep &= held[b] | (of[np.minimum(a + 1, b)] != of[b])
     keep &= np.array([(path[i], path[j]) not in tried for i, j in zip(a, b, strict=True)],
                      dtype=bool)
     a, b = a[keep], b[keep]
@@ -98,26 +163,62 @@ def interior_shortcuts(planner: RRTCoLearn, plan: Plan,
     (``on_target``), the chains kept, those that needed a goal tail, and the shots whose
     rest of the path could be neither re-attached nor replaced by a goal tail (``lost``).
     """
+    return _shortcuts(planner, plan, stop, cut=False)
+
+
+def piece_shortcuts(planner: RRTCoLearn, plan: Plan,
+                    stop: Callable[[], bool] | None = None) -> Plan:
+    """`interior_shortcuts` between stations along the path's edges: the path cut into
+    pieces first (`_pieces`: about PAIR_NODES nodes in all, as new leaves), stretches
+    within one extremal edge left out (it is one extremal already). A path of a few long
+    edges (the unicycle's among obstacles, 7-20 edges) gives the interior search few
+    stretches, none of them the detours inside an edge. ``extra["pieces"]`` records what
+    ``extra["interior"]`` does, and ``pieces``: the nodes the cutting added (left in the
+    tree as leaves whether a shortcut is kept or not)."""
+    return _shortcuts(planner, plan, stop, cut=True)
+
+
+def _shortcuts(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None, *,
+               cut: bool) -> Plan:
+    """`interior_shortcuts` (``cut`` False) or `piece_shortcuts` (True)."""
     if not plan.solved:
         return plan
     sys, s = planner.problem.system, planner.settings
+    key = "pieces" if cut else "interior"
     record = {"stretches": 0, "shots": {"edge": [0, 0], "U_stretch": [0, 0], "U": [0, 0]},
-              "on_target": 0, "kept": 0, "goal_tails": 0, "lost": 0, "added": 0}
-    if len(plan.path_nodes) < 3 or planner.model is None or sys.params_from_costate is None:
-        plan.extra["interior"] = record
+              "on_target": 0, "kept": 0, "goal_tails": 0, "lost": 0, "added": 0,
+              **({"pieces": 0} if cut else {})}
+    if len(plan.path_nodes) < 3 or planner.model is None or \
+            sys.params_from_costate is None or (cut and stop is not None and stop()):
+        plan.extra[key] = record
         return plan
     n = sys.n_states
     prop, tree = planner.propagator, plan.tree
     lam, z0 = np.empty(n), np.empty(2 * n + 1)
     lqr = goal_lqr(prop) if s.goal_lqr is not False else None
     lqr = None if isinstance(lqr, str) else lqr
-    path = list(plan.path_nodes)
+    path, origin = list(plan.path_nodes), {}
+    if cut:
+        nodes = tree.n_nodes
+        path, origin = _pieces(planner, tree, path, PAIR_NODES)
+        record["pieces"] = tree.n_nodes - nodes
+    found = _search(planner, tree, path, origin, lqr, lam, z0, record, stop)
+    return recorded(plan, prop, found, key, record)
+
+
+def _search(planner: RRTCoLearn, tree: PlannerData, path: list[int], origin: dict[int, int],
+            lqr, lam: np.ndarray, z0: np.ndarray, record: dict,
+            stop: Callable[[], bool] | None) -> list[int] | None:
+    """`interior_shortcuts`' search on ``path`` (``origin``: `_pieces`'): the path after
+    the stretches it shortcut, or None when it kept none."""
+    s = planner.settings
+    added = record["added"]
     best = float(costs_to_come(tree, path)[-1])
     tried: set[tuple[int, int]] = set()
     misses = 0
     while misses < INTERIOR_MISSES:
         come = costs_to_come(tree, path)
-        pairs = _pairs(planner, tree, path, come, tried, stop)
+        pairs = _pairs(planner, tree, path, come, tried, stop, origin)
         if not pairs:
             break
         found = None
@@ -139,7 +240,7 @@ def interior_shortcuts(planner: RRTCoLearn, plan: Plan,
         path = grafted(tree, path, a, chain, s.dt, record)
         record["goal_tails"] += tail
         best = float(costs_to_come(tree, path)[-1])
-    return recorded(plan, prop, path if record["added"] else None, "interior", record)
+    return path if record["added"] > added else None
 
 
 def _shortcut_stretch(planner: RRTCoLearn, tree: PlannerData, path: list[int], a: int, b: int,
