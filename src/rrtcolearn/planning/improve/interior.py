@@ -119,7 +119,7 @@ def _pairs(planner: RRTCoLearn, tree: PlannerData, path: list[int], come: np.nda
     keep = (b - a >= 2) | held[b]
     if origin:  # not within one extremal cut into pieces (`_pieces`): it is one already
         of = np.array([origin.get(i, i) for i in path])
-        keep &= held[b] | (of[np.minimum(a + 1, b)] != of[b])
+        keep &= held[b] | (of[a + 1] != of[b])
     keep &= np.array([(path[i], path[j]) not in tried for i, j in zip(a, b, strict=True)],
                      dtype=bool)
     a, b = a[keep], b[keep]
