@@ -20,7 +20,7 @@ import numpy as np
 
 from rrtcolearn.integrate import rollout
 from rrtcolearn.planning.connections import LAND_TOLERANCE, SHOOT_TOLERANCE, goal_lqr
-from rrtcolearn.planning.contracts import Edge
+from rrtcolearn.planning.contracts import Edge, add_edge
 from rrtcolearn.planning.improve.common import (
     INTERIOR_MISSES,
     PAIR_NODES,
@@ -77,30 +77,30 @@ def _pieces(planner: RRTCoLearn, tree: PlannerData, path: list[int], count: int
             new.append(node)
             parent = node
             continue
-        bounds = [*range(0, k, span), k] if cut else [0, k]
-        for s0, s1 in pairwise(bounds):
-            if held:
-                u = tree.controls[node]
-                cost = tree.costs[node] if not cut else (s1 - s0) * s.dt * prop.hold_rate(u)
-                child = tree.add(traj[s1, :n], parent, np.full(n, np.nan),
-                                 np.full(tree.params.shape[1], np.nan), (s1 - s0) * s.dt, cost,
-                                 traj[s0 : s1 + 1], tree.max_abs_u[node], control=u)
-            elif not cut:
-                child = tree.add(tree.states[node], parent, tree.costates[node],
-                                 tree.params[node], tree.durations[node], tree.costs[node],
-                                 traj, tree.max_abs_u[node])
-            else:
+        if not cut:  # the edge as it is, below the pieces before it
+            pieces = [Edge(traj, k, tree.costs[node], tree.max_abs_u[node], False,
+                           np.append(tree.params[node], k * s.dt), tree.costates[node],
+                           tree.controls[node] if held else None)]
+        elif held:
+            u = tree.controls[node]
+            pieces = [Edge(traj[s0 : s1 + 1], s1 - s0, (s1 - s0) * s.dt * prop.hold_rate(u),
+                           tree.max_abs_u[node], False, control=u)
+                      for s0, s1 in pairwise([*range(0, k, span), k])]
+        else:
+            pieces = []
+            for s0, s1 in pairwise([*range(0, k, span), k]):
                 lam0 = z[s0, n : 2 * n]
                 params = sys.params_from_costate(z[s0, :n][None], lam0[None])[0]
                 top = max(sys.input_max_abs_jit(z[r]) for r in range(s0, s1 + 1))
-                child = tree.add(traj[s1, :n], parent, lam0, params, (s1 - s0) * s.dt,
-                                 float(z[s1, 2 * n] - z[s0, 2 * n]), traj[s0 : s1 + 1, :n],
-                                 float(top))
+                pieces.append(Edge(traj[s0 : s1 + 1, :n], s1 - s0,
+                                   float(z[s1, 2 * n] - z[s0, 2 * n]), float(top), False,
+                                   np.append(params, (s1 - s0) * s.dt), lam0))
+        for edge in pieces:
+            parent = add_edge(tree, parent, edge, s.dt)
             if node in tree.made_by:
-                tree.made_by[child] = tree.made_by[node]
-            origin[child] = origin.get(node, node)
-            new.append(child)
-            parent = child
+                tree.made_by[parent] = tree.made_by[node]
+            origin[parent] = origin.get(node, node)
+            new.append(parent)
     return new, origin
 
 
