@@ -121,17 +121,13 @@ def station_pairs(count: int) -> tuple[np.ndarray, np.ndarray]:
     return at[i], at[j]
 
 
-def grafted(tree: PlannerData, path: list[int], a: int, chain: list, dt: float,
-             record: dict) -> list[int]:
+def grafted(tree: PlannerData, path: list[int], a: int, chain: list, dt: float) -> list[int]:
     """``path`` up to position a, then ``chain``'s (edge, kind) added as new leaves below it
-    (a kind of None keeps the edge's default); counts the edges added and the chain kept in
-    ``record``. The interior and landed shortcuts' way of keeping a chain."""
+    (a kind of None keeps the edge's default): the way every pass keeps a chain."""
     parent, path = path[a], path[: a + 1]
     for edge, kind in chain:
         parent = add_edge(tree, parent, edge, dt)
         if kind is not None:
             tree.made_by[parent] = kind
         path.append(parent)
-        record["added"] += 1
-    record["kept"] += 1
     return path

@@ -237,7 +237,9 @@ def _search(planner: RRTCoLearn, tree: PlannerData, path: list[int], origin: dic
             break
         misses = 0
         a, chain, tail = found
-        path = grafted(tree, path, a, chain, s.dt, record)
+        path = grafted(tree, path, a, chain, s.dt)
+        record["added"] += len(chain)
+        record["kept"] += 1
         record["goal_tails"] += tail
         best = float(costs_to_come(tree, path)[-1])
     return path if record["added"] > added else None

@@ -94,7 +94,9 @@ def landed_shortcuts(planner: RRTCoLearn, plan: Plan,
             break
         misses = 0
         i, chain = found
-        path = grafted(tree, path, i, chain, s.dt, record)
+        path = grafted(tree, path, i, chain, s.dt)
+        record["added"] += len(chain)
+        record["kept"] += 1
         best = float(costs_to_come(tree, path)[-1])
     return recorded(plan, prop, path if record["added"] else None, "landed", record)
 

@@ -15,8 +15,7 @@ from rrtcolearn.planning.connections import (
     extremal_chain,
     terminal_conditions,
 )
-from rrtcolearn.planning.contracts import add_edge
-from rrtcolearn.planning.improve.common import costs_to_come, recorded
+from rrtcolearn.planning.improve.common import costs_to_come, grafted, recorded
 from rrtcolearn.planning.shooting import multiple_shoot
 from rrtcolearn.planning.tree import Plan
 
@@ -124,10 +123,6 @@ def multiple_shooting(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] 
     if cost >= best - 1e-9:
         record["why"] = "not cheaper"
         return recorded(plan, prop, None, "multiple_shooting", record)
-    parent, new_path = path[0], [path[0]]
-    for edge in chain:
-        parent = add_edge(tree, parent, edge, s.dt)
-        tree.made_by[parent] = "shooting"
-        new_path.append(parent)
     record["kept"] = True
+    new_path = grafted(tree, path, 0, [(edge, "shooting") for edge in chain], s.dt)
     return recorded(plan, prop, new_path, "multiple_shooting", record)

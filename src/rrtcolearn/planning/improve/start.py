@@ -9,8 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rrtcolearn.planning.connections import FunnelConnection
-from rrtcolearn.planning.contracts import add_edge
-from rrtcolearn.planning.improve.common import costs_to_come, recorded
+from rrtcolearn.planning.improve.common import costs_to_come, grafted, recorded
 from rrtcolearn.planning.tree import Plan
 
 if TYPE_CHECKING:
@@ -71,10 +70,6 @@ def start_funnel(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | Non
     record["nearest"] = search.nearest
     if found is None:
         return recorded(plan, prop, None, "start_funnel", record)
-    parent, path = 0, [0]
-    for edge in found:
-        parent = add_edge(tree, parent, edge, planner.settings.dt)
-        tree.made_by[parent] = "funnel"
-        path.append(parent)
+    path = grafted(tree, [0], 0, [(edge, "funnel") for edge in found], planner.settings.dt)
     record["kept"] = True
     return recorded(plan, prop, path, "start_funnel", record)
