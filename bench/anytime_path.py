@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> float:
     ap.add_argument("problem", choices=sorted(ablation.PROBLEMS))
     ap.add_argument("seeds")
     ap.add_argument("out")
-    ap.add_argument("--models", type=Path, default=Path("/tmp/gb_models"))
+    ap.add_argument("--models", type=Path, default=Path("/tmp/rrtcolearn_ablation_models"))
     ap.add_argument("--anytime", type=float, default=10.0, help="process CPU s per seed")
     args = ap.parse_args(argv)
     problem = ablation.PROBLEMS[args.problem]
