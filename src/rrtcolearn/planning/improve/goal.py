@@ -31,8 +31,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rrtcolearn.planning.connections import goal_lqr, lqr_chain, shoot_edge
-from rrtcolearn.planning.contracts import Edge, add_edge
-from rrtcolearn.planning.improve.common import costs_to_come, recorded
+from rrtcolearn.planning.contracts import Edge
+from rrtcolearn.planning.improve.common import costs_to_come, grafted, recorded
 from rrtcolearn.planning.learned import goal_query
 from rrtcolearn.planning.tree import Plan
 
@@ -102,15 +102,11 @@ def goal_shortcuts(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | N
                 tails.append(chain)
         costs = [sum(e.cost for e in t) for t in tails]
         if costs and come[pos] + min(costs) < best - 1e-9:
-            parent = node
-            path = path[: pos + 1]
             tail = tails[int(np.argmin(costs))]
-            for edge in tail:
-                parent = add_edge(tree, parent, edge, s.dt)
-                # a shortcut is one extremal by shooting, or an LQR chain of held inputs
-                tree.made_by[parent] = "lqr" if edge.control is not None else "shooting"
-                path.append(parent)
-                added += 1
+            # a shortcut is one extremal by shooting, or an LQR chain of held inputs
+            path = grafted(tree, path, pos, [(edge, "lqr" if edge.control is not None
+                                              else "shooting") for edge in tail], s.dt)
+            added += len(tail)
             best = float(come[pos] + min(costs))
         pos -= 1
     return recorded(plan, prop, path if added else None, "shortcuts",
