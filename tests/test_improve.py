@@ -326,3 +326,36 @@ def test_a_pieces_path_turned_down_leaves_the_path_before_them(paper_model, monk
         assert out is asked[0] and out.extra["pieces"] == {"kept": 1}
     else:
         assert out is given[0] and out.extra["pieces"] == {"kept": 1, "not_accepted": True}
+
+
+def test_grafted_adds_the_chain_as_leaves_below_the_cut():
+    """`grafted`, every pass's way of keeping a chain: the path up to position a, then each
+    edge a new leaf below the one before with its kind (None: the edge's default), and
+    nothing in the tree before it changed."""
+    from rrtcolearn.planning.contracts import Edge
+    from rrtcolearn.planning.improve.common import grafted
+    from rrtcolearn.planning.tree import PlannerData
+
+    tree = PlannerData(np.zeros(2), n_params=1, capacity=2)
+    path = [0]
+    for i in range(3):  # a path of three held-input edges
+        end = np.array([i + 1.0, 0.0])
+        path.append(tree.add(end, path[-1], np.full(2, np.nan), np.full(1, np.nan), 0.1, 1.0,
+                             np.stack([end - [1.0, 0.0], end]), 2.0, control=np.array([2.0])))
+    before = {k: getattr(tree, k)[: tree.n_nodes].copy() for k in ("states", "parents", "costs")}
+    chain = [(Edge(np.array([[1.0, 0.0, 0.5, 0.5, 0.0], [1.5, 1.0, 0.5, 0.5, 0.3]]), 10, 0.3,
+                   0.5, False, np.array([0.7, 0.1]), np.array([0.5, 0.5])), "shooting"),
+             (Edge(np.array([[1.5, 1.0], [3.0, 0.0]]), 20, 0.8, 1.0, True,
+                   control=np.array([1.0])), None)]
+    new = grafted(tree, path, 1, chain, 0.01)
+    assert new[:2] == path[:2] and len(new) == 4 and new[2:] == [4, 5]
+    assert tree.n_nodes == 6 and path == [0, 1, 2, 3]  # the old path untouched
+    for k, v in before.items():
+        assert np.array_equal(getattr(tree, k)[:4], v, equal_nan=True)
+    assert tree.parents[4] == 1 and tree.parents[5] == 4
+    assert np.array_equal(tree.states[4], [1.5, 1.0]) and np.array_equal(tree.states[5], [3.0, 0.0])
+    assert tree.costs[4] == 0.3 and tree.costs[5] == 0.8
+    assert tree.durations[4] == pytest.approx(0.1) and tree.durations[5] == pytest.approx(0.2)
+    assert np.array_equal(tree.costates[4], [0.5, 0.5]) and tree.params[4, 0] == 0.7
+    assert tree.made_by.get(4) == "shooting" and 5 not in tree.made_by
+    assert np.array_equal(tree.controls[5], [1.0]) and np.isnan(tree.costates[5]).all()
