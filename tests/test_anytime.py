@@ -12,7 +12,7 @@ import pytest
 from tests.swingup import GOAL, START, plan_swingup
 
 from rrtcolearn import planners
-from rrtcolearn.anytime import solve_with_restarts
+from rrtcolearn.anytime import ALLOWANCE, solve_with_restarts
 from rrtcolearn.config import PlanConfig
 from rrtcolearn.evaluate import resimulate
 from rrtcolearn.planning.problem import PlanningProblem
@@ -220,10 +220,10 @@ def test_the_first_improvement_has_an_allowance_of_its_own(pendulum):
     # a try stops at the first stop() call past its share (but the last, at the budget):
     # ``first``'s of all solves so far, ``improve``'s of its own solve
     for k, (_, _, calls) in enumerate(first_log[:-1]):
-        assert calls == int(grown[k] / (k + 1)) + 1
+        assert calls == int(ALLOWANCE * grown[k] / (k + 1)) + 1
     assert len(improve_log) == sum(ok for ok, _, _ in solved) > len(news)
     for j, (_, its, calls) in enumerate(improve_log[:-1]):
-        assert calls == int(max(1, its) / (j + 1)) + 1
+        assert calls == int(ALLOWANCE * max(1, its) / (j + 1)) + 1
     # with an iteration budget the same seed gives the same calls and the same plan
     q, solved2, first_log2, improve_log2 = run()
     assert (solved2, first_log2, improve_log2) == (solved, first_log, improve_log)

@@ -65,6 +65,12 @@ def _at_most_spent(left: TerminationCondition, termination: TerminationCondition
                                 cut(left.cpu_time_limit, time.process_time() - cpu0))
 
 
+# ``allowance``'s default: each improvement may take this multiple of what the solves took
+# (times its record's (gains + 1) / (tries + 1)). 3 rather than 1 spends more of the budget
+# on improving the paths found and less on further solves: measured on the nine problems of
+# bench/ablation.py, 10 seeds of 10 s each (docs/anytime.md, "The improvements' allowance")
+ALLOWANCE = 3.0
+
 def _improved(improve: Callable[[Plan, Callable[[], bool]], Plan], p: Plan, fraction: float,
               termination: TerminationCondition, iterations: int, cpu0: float,
               grown: tuple[float, int] | None = None, in_steps: bool = False
@@ -106,7 +112,7 @@ def solve_with_restarts(solve: Callable[..., Plan],
                         improve: Callable[[Plan, Callable[[], bool]], Plan] | None = None,
                         narrowest: float = 1.0,
                         first: Callable[[Plan, Callable[[], bool]], Plan] | None = None,
-                        solves: int | None = None, allowance: float = 1.0,
+                        solves: int | None = None, allowance: float = ALLOWANCE,
                         in_steps: bool = False,
                         accept: Callable[[Plan], bool] | None = None) -> Plan:
     """Call ``solve`` until ``termination``'s whole budget is spent, each solve after the
@@ -135,10 +141,10 @@ def solve_with_restarts(solve: Callable[..., Plan],
     ``solves``: stop after that many solves (each with its improvements) even with budget
     left; ``solves=1`` is one improvement round on the first solution (``plan.polish``:
     `first` then `improve` once each; docs/anytime.md). ``allowance`` scales both
-    allowances (1: each up to what the solves took). ``in_steps``: the allowances in
-    improvement steps (``allowance`` x the solves' iterations) under any budget, so that the
-    improvements do not depend on the machine's speed (under a time budget the solves still
-    do where the budget runs out).
+    allowances (1: each up to what the solves took; by default `ALLOWANCE`). ``in_steps``:
+    the allowances in improvement steps (``allowance`` x the solves' iterations) under any
+    budget, so that the improvements do not depend on the machine's speed (under a time
+    budget the solves still do where the budget runs out).
 
     A ``solve`` that takes ``query`` (`RRTCoLearn.solve`) is told the query's seed: its goal
     funnel is drawn from that seed's stream and built once for all the query's solves
