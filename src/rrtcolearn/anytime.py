@@ -71,6 +71,7 @@ def _at_most_spent(left: TerminationCondition, termination: TerminationCondition
 # bench/ablation.py, 10 seeds of 10 s each (docs/anytime.md, "The improvements' allowance")
 ALLOWANCE = 3.0
 
+
 def _improved(improve: Callable[[Plan, Callable[[], bool]], Plan], p: Plan, fraction: float,
               termination: TerminationCondition, iterations: int, cpu0: float,
               grown: tuple[float, int] | None = None, in_steps: bool = False
