@@ -20,7 +20,7 @@ import numpy as np
 
 from rrtcolearn.integrate import rollout
 from rrtcolearn.planning.connections import LAND_TOLERANCE, SHOOT_TOLERANCE, goal_lqr
-from rrtcolearn.planning.contracts import Edge, add_edge
+from rrtcolearn.planning.contracts import Edge
 from rrtcolearn.planning.improve.common import (
     INTERIOR_MISSES,
     PAIR_NODES,
@@ -95,12 +95,10 @@ def _pieces(planner: RRTCoLearn, tree: PlannerData, path: list[int], count: int
                 pieces.append(Edge(traj[s0 : s1 + 1, :n], s1 - s0,
                                    float(z[s1, 2 * n] - z[s0, 2 * n]), float(top), False,
                                    np.append(params, (s1 - s0) * s.dt), lam0))
-        for edge in pieces:
-            parent = add_edge(tree, parent, edge, s.dt)
-            if node in tree.made_by:
-                tree.made_by[parent] = tree.made_by[node]
-            origin[parent] = origin.get(node, node)
-            new.append(parent)
+        new = grafted(tree, new, len(new) - 1,
+                      [(edge, tree.made_by.get(node)) for edge in pieces], s.dt)
+        origin.update(dict.fromkeys(new[-len(pieces):], origin.get(node, node)))
+        parent = new[-1]
     return new, origin
 
 
