@@ -299,7 +299,6 @@ def test_piece_shortcuts_keep_the_tree_and_never_cost_more(paper_model):
     assert gained >= 1
 
 
-
 @pytest.mark.parametrize("verdict", [False, True])
 def test_a_pieces_path_turned_down_leaves_the_path_before_them(paper_model, monkeypatch,
                                                                 verdict):
