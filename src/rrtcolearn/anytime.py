@@ -147,9 +147,12 @@ def solve_with_restarts(solve: Callable[..., Plan],
     budget, so that the improvements do not depend on the machine's speed (under a time
     budget the solves still do where the budget runs out).
 
-    A ``solve`` that takes ``query`` (`RRTCoLearn.solve`) is told the query's seed: its goal
-    funnel is drawn from that seed's stream and built once for all the query's solves
-    (`planning.funnel.FunnelStream`; docs/anytime.md, "One funnel per query").
+    A ``solve`` that takes ``query`` (`RRTCoLearn.solve`) is told the query's seed in every
+    solve after the first: its goal funnel is drawn from that seed's stream and built once
+    for all the query's solves (`planning.funnel.FunnelStream`; docs/anytime.md, "One
+    funnel per query"); the first solve, not told, begins the run (the search through the
+    start that ``improve`` may keep from solve to solve starts afresh), so a second run of
+    the seed on the same planner is the first again.
 
     ``accept(plan)``: whether a solved plan may be the best (`pipeline.plan`: its step
     resolves it, `evaluate.step_check`). An accepted plan beats every plan not accepted,
@@ -162,8 +165,9 @@ def solve_with_restarts(solve: Callable[..., Plan],
         raise ValueError("an anytime plan needs a budget: a time, CPU time or iteration limit")
     if solves is not None and solves < 1:
         raise ValueError(f"solves must be at least 1, not {solves}")
-    if _takes_query(solve):
-        solve = partial(solve, query=seed)
+    # the solves after the first are told the query's seed; the first, without it, begins
+    # the query's run (`RRTCoLearn.solve`)
+    later = partial(solve, query=seed) if _takes_query(solve) else solve
     termination.start()
     cpu0 = time.process_time()
     children = np.random.SeedSequence(seed)
@@ -193,8 +197,9 @@ def solve_with_restarts(solve: Callable[..., Plan],
             (left := _remaining(termination, iterations, cpu0)) is not None:
         child = seed if runs == 0 else int(children.spawn(1)[0].generate_state(1)[0])
         scales.append(scale)
-        p = solve(left, child) if scale == 1.0 else \
-            solve(_at_most_spent(left, termination, iterations, cpu0), child, scale)
+        run_solve = solve if runs == 0 else later
+        p = run_solve(left, child) if scale == 1.0 else \
+            run_solve(_at_most_spent(left, termination, iterations, cpu0), child, scale)
         if narrowest < 1.0:
             if p.solved and p.path_cost < cheapest_solve:
                 scale = max(narrowest, 0.5 * scale)

@@ -347,7 +347,12 @@ class FunnelStream:
     (their kd-trees too) and build only those beyond. A solve uses the parts its own growth
     asks for, in its own turn (`draws`), so what it does is the same whichever solves ran
     before it: the plans stay a function of their seeds. A stream serves one planner (the
-    parts are its funnel's, of its settings)."""
+    parts are its funnel's, of its settings).
+
+    The search for extremals through the start (`aimed`) is the one stateful part: it
+    belongs to one run of the query (an anytime run: its first solve calls `begin`), is
+    seeded with the parts that run used, and draws from a generator restarted with the run,
+    so a second run of the query is the first again, not its continuation."""
 
     def __init__(self, rng: np.random.Generator, aim_rng: np.random.Generator | None = None):
         self._rng = rng
@@ -357,8 +362,17 @@ class FunnelStream:
         # the funnel's builder from steering parameters (the last part's), and the search
         # for extremals through the query's start (`aimed`), with a generator of its own
         self.build: Callable[[np.ndarray], GoalFunnel] | None = None
+        self._aim_seed = aim_rng.bit_generator.seed_seq if aim_rng is not None else None
         self._aim_rng = aim_rng
         self._aimed: AimedSearch | None = None
+        self.used: list[tuple[int, int]] = []  # the parts this run used, in turn
+
+    def begin(self) -> None:
+        """A new run of the query: the parts kept, the search through the start
+        (`aimed`) and its generator restarted, the parts used so far forgotten."""
+        self._aimed, self.used = None, []
+        if self._aim_seed is not None:
+            self._aim_rng = np.random.default_rng(self._aim_seed)
 
     @classmethod
     def of_query(cls, query: int | np.random.SeedSequence) -> FunnelStream:
@@ -394,20 +408,23 @@ class FunnelStream:
                     np.concatenate([self._params, more])
             self.parts[key] = build(self._params[first : first + k])
             self.built += 1
+        if key not in self.used:
+            self.used.append(key)
         return self.parts[key]
 
     def aimed(self, start: np.ndarray, system: System,
               offset_to: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> AimedSearch | None:
         """The search for extremals through ``start`` (`AimedSearch`), seeded with the
-        extremals of the parts built so far that pass nearest it; kept for the query's
-        later calls. None before any part is built, or for another start."""
-        if self.build is None or not self.parts:
+        extremals of the parts this run used so far that pass nearest it; kept for the
+        run's later calls. None before any part is used, or for another start."""
+        if self.build is None or not self.used:
             return None
         if self._aimed is None:
             if self._aim_rng is None:  # (a stream not made by `of_query`)
-                self._aim_rng = np.random.default_rng(self._rng.bit_generator.seed_seq.spawn(1)[0])
+                self._aim_seed = self._rng.bit_generator.seed_seq.spawn(1)[0]
+                self._aim_rng = np.random.default_rng(self._aim_seed)
             self._aimed = AimedSearch(start, system, offset_to, self._aim_rng,
-                                      list(self.parts.values()))
+                                      [self.parts[key] for key in self.used])
         return self._aimed if np.array_equal(self._aimed.target, start) else None
 
     def __len__(self) -> int:

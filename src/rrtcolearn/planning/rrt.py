@@ -134,7 +134,9 @@ class RRTCoLearn:
         after the first: `anytime.solve_with_restarts`), by default ``seed`` (a query of
         its own): the goal funnel's extremals are drawn from a stream of the query's seed
         and built once per query (`funnel.FunnelStream`, `funnel_stream`), so a query's
-        later solves reuse what its earlier ones built."""
+        later solves reuse what its earlier ones built. A solve without ``query`` begins a
+        new run of its query (`FunnelStream.begin`: the improvements' search through the
+        start restarts), so a run does not continue an earlier run's search."""
         prob, sys, s = self.problem, self.problem.system, self.settings
         controls = self.controls
         if controls is not None:
@@ -146,6 +148,8 @@ class RRTCoLearn:
         rng = np.random.default_rng(seed)
         cpu0 = time.thread_time()
         termination.start()
+        if query is None:  # a query of its own, or an anytime run's first solve
+            self.funnel_stream(seed).begin()
         # a goal funnel asked for is built here: it counts as planning
         run = self.start(rng, seed if query is None else query)
         tree, progress, schedule = run.tree, run.progress, run.schedule
