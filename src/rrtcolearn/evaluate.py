@@ -241,6 +241,18 @@ def replay(problem, plan, dt: float | None = None) -> dict:
             and gap <= problem.goal_tolerance + 1e-9}
 
 
+def end_gap(problem, full: np.ndarray, half: np.ndarray) -> float:
+    """`step_check`'s ``goal_gap`` of two ends of a path, replayed at the plan's step
+    (``full``) and at half of it: the distance of their offsets from the goal as the goal
+    test measures it (with a goal function the difference of its two distances)."""
+    ends = np.array([full, half], dtype=np.float64)
+    if problem.goal_fn is None:
+        offsets = problem.goal_residual(ends)
+        return float(np.linalg.norm(offsets[0] - offsets[1]))
+    d = problem.goal_distance(ends)
+    return float(abs(d[0] - d[1]))
+
+
 def step_check(problem, plan) -> dict:
     """Does the plan's integration step resolve its path? The path `replay`-ed from the
     start at the plan's step and at half of it: RK4's error at the half step is about 1/16
@@ -263,11 +275,7 @@ def step_check(problem, plan) -> dict:
     full = replay(problem, plan)
     half = replay(problem, plan, float(plan.dt) / 2.0)
     ends = np.array([full["final_state"], half["final_state"]])
-    if problem.goal_fn is None:
-        offsets = problem.goal_residual(ends)
-        goal_gap = float(np.linalg.norm(offsets[0] - offsets[1]))
-    else:
-        goal_gap = abs(full["final_goal_distance"] - half["final_goal_distance"])
+    goal_gap = end_gap(problem, ends[0], ends[1])
     # the replay at the plan's own step is the plan's path, edge for edge: else the plan
     # records edges that are not what it integrated (a bug, never a property of the problem)
     edges = plan.edges()

@@ -29,7 +29,7 @@ from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.planning.contracts import Edge, GrowingTree, grown
 from rrtcolearn.planning.funnel import Continuation, GoalFunnel
 from rrtcolearn.planning.learned import REFINE_PROGRESS, goal_query
-from rrtcolearn.planning.lqr import GoalLQR, build_goal_lqr
+from rrtcolearn.planning.lqr import GoalLQR, LQRTry, build_goal_lqr
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.propagator import Propagator
 from rrtcolearn.planning.schedule import Allowance
@@ -203,6 +203,13 @@ def lqr_chain(propagator: Propagator, lqr: GoalLQR, x0: np.ndarray
                   propagator.goal_mask, prob.validity if prob.validity else None)
     if not out.reached:
         return None, out.end
+    return held_chain(propagator, out), out.end
+
+
+def held_chain(propagator: Propagator, out: LQRTry) -> list[Edge]:
+    """A closed-loop run into the goal region (`lqr.LQRTry`, reached) as a chain of
+    constant-input edges, consecutive equal inputs (e.g. saturated) merged into one."""
+    prob, s = propagator.problem, propagator.settings
     us = out.inputs
     breaks = [0, *np.flatnonzero(np.any(us[1:] != us[:-1], axis=1)) + 1, len(us)]
     chain = []
@@ -214,7 +221,7 @@ def lqr_chain(propagator: Propagator, lqr: GoalLQR, x0: np.ndarray
                           float(np.abs(u).max()), last, control=u,
                           end_distance=float(prob.goal_distance(out.states[b])[0])
                           if last else None))
-    return chain, out.end
+    return chain
 
 
 def goal_lqr(propagator: Propagator) -> GoalLQR | str:

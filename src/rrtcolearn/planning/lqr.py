@@ -51,8 +51,8 @@ import numpy as np
 from rrtcolearn.integrate import propagate
 from rrtcolearn.planning.problem import PlanningProblem
 
-__all__ = ["LOOP_TIME_CONSTANTS", "GoalLQR", "LQRTry", "build_goal_lqr", "equilibrium",
-           "step_jacobians"]
+__all__ = ["LOOP_TIME_CONSTANTS", "LQ_TERMINAL", "GoalLQ", "GoalLQR", "LQRTry", "build_goal_lqr",
+           "equilibrium", "step_jacobians"]
 
 # The goal loop's horizon: this many time constants of the closed loop's slowest mode that
 # it moves (`GoalLQR.horizon`; e^-5 < 1% of that mode's error left). It was a fixed 3 s,
@@ -299,3 +299,103 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
         return "the LQR closed loop moves no mode (every eigenvalue within 1e-6 of 1)"
     tau = -float(dt) / float(np.log(moved.max())) if moved.max() > 0.0 else float(dt)
     return GoalLQR(problem, float(dt), x_e, u_e, K, 0.5 * (P + P.T), u_low, u_high, rho, tau)
+
+
+# `GoalLQ`'s terminal weight, as a multiple of Bryson's state weight per second (1 / h_i^2,
+# h_i the state box's half-width): large enough to act as the constraint "end at the
+# equilibrium" (a miss of 1% of a half-width costs 1e5), finite so that the backward pass
+# stays a plain Riccati recursion
+LQ_TERMINAL = 1e9
+
+
+class GoalLQ:
+    """The finite-horizon linear-quadratic law into the goal's equilibrium with the plan's
+    own running cost (``plan.goal_lqr``'s linearisation, the cost w + u^T R u / 2 instead
+    of Bryson's weights): for each horizon of j steps, the inputs that minimise the cost of
+    the linearised step map's path from x to the equilibrium (a soft terminal constraint,
+    `LQ_TERMINAL`), as a time-varying feedback u = u_e - K_j e - k_j on the offset
+    e = x - x_e, and the path's predicted cost (the value ``e' P_j e / 2 + p_j' e + c_j``).
+
+    Why: the LQR connection's gains come from the boxes (Bryson's rule), so its chains are
+    fast and dear; a transfer whose optimum lies in the linearisation's reach (sparse_rrt's
+    cart-pole, the pole held inverted for 37 s) costs a hundred times its optimum along
+    them. The horizon is the free final time: the predicted cost over j is w j dt plus the
+    effort, least at the optimum's duration in the linear model (goal shortcuts:
+    `planning.improve.goal.goal_shortcuts`).
+
+    The tables grow backwards from the horizon 0 as far as asked (`extend`); each step
+    costs a few (n, n) products, and the gains are kept for every horizon (the law of a run
+    of j steps uses K_j, K_(j-1), ..., K_1)."""
+
+    def __init__(self, lqr: GoalLQR, input_weight: np.ndarray, time_weight: float):
+        prob, dt = lqr.problem, lqr.dt
+        self.lqr, self.dt, self.w = lqr, dt, float(time_weight)
+        sys = prob.system
+        A, B = step_jacobians(sys, lqr.x_e, lqr.u_e, dt)
+        self.A, self.B = A, B
+        self.R = np.asarray(input_weight, dtype=np.float64)
+        Q, _ = bryson_weights(prob, dt, np.diag(self.R))
+        n, m = B.shape
+        self.P = [LQ_TERMINAL * Q / dt]  # the value's (n, n) per horizon, 0 first
+        self.p, self.c = [np.zeros(n)], [0.0]
+        self.K: list[np.ndarray] = [np.zeros((m, n))]  # K[j]: the first step's of horizon j
+        self.k: list[np.ndarray] = [np.zeros(m)]
+
+    def extend(self, steps: int) -> None:
+        """The tables up to the horizon ``steps``."""
+        A, B, dt, ue = self.A, self.B, self.dt, self.lqr.u_e
+        rd = dt * self.R
+        stage = self.w * dt + 0.5 * dt * float(ue @ self.R @ ue)
+        P, p, c = self.P[-1], self.p[-1], self.c[-1]
+        for _ in range(len(self.P) - 1, steps):
+            quu = rd + B.T @ P @ B
+            qux = B.T @ P @ A
+            qu = rd @ ue + B.T @ p
+            K, k = np.linalg.solve(quu, qux), np.linalg.solve(quu, qu)
+            P = A.T @ P @ A - qux.T @ K
+            P = 0.5 * (P + P.T)
+            p = A.T @ p - qux.T @ k
+            c = c + stage - 0.5 * float(qu @ k)
+            self.P.append(P)
+            self.p.append(p)
+            self.c.append(c)
+            self.K.append(K)
+            self.k.append(k)
+
+    def predicted(self, x0: np.ndarray, steps: int) -> np.ndarray:
+        """(steps + 1,) the linear model's cost from ``x0`` into the equilibrium in j = 0 ..
+        ``steps`` steps (j = 0: inf)."""
+        self.extend(steps)
+        e = self.lqr.offset(x0)[0]
+        P = np.asarray(self.P[: steps + 1])
+        out = 0.5 * np.einsum("i,jik,k->j", e, P, e) + np.asarray(self.p[: steps + 1]) @ e \
+            + np.asarray(self.c[: steps + 1])
+        out[0] = np.inf
+        return out
+
+    def run(self, x0: np.ndarray, steps: int, box: tuple[np.ndarray, np.ndarray],
+            goal_mask, validity=None) -> LQRTry:
+        """The law of the horizon ``steps`` from ``x0`` on the system (its RK4 step), cut at
+        the first state in the goal region; ends as `GoalLQR.run`'s ("reached", "box",
+        "obstacle", "timeout")."""
+        self.extend(steps)
+        sys, lqr = self.lqr.problem.system, self.lqr
+        low, high = box
+        states = np.empty((steps + 1, x0.size))
+        inputs = np.empty((steps, lqr.u_e.size))
+        states[0] = x = np.asarray(x0, dtype=np.float64)
+        for i in range(steps):
+            j = steps - i
+            u = np.clip(lqr.u_e - self.K[j] @ lqr.offset(x)[0] - self.k[j], lqr.u_low,
+                        lqr.u_high)
+            x = propagate(sys, x, u, self.dt, 1)[-1]
+            if not (np.all(low <= x) and np.all(x <= high)):  # NaN fails too
+                return LQRTry(states[: i + 1], inputs[:i], "box")
+            states[i + 1], inputs[i] = x, u
+            if goal_mask(x[None])[0]:
+                steps = i + 1
+                break
+        states, inputs = states[: steps + 1], inputs[:steps]
+        if validity and not validity(states[1:]).all():
+            return LQRTry(states, inputs, "obstacle")
+        return LQRTry(states, inputs, "reached" if goal_mask(states[-1:])[0] else "timeout")

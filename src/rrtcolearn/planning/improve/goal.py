@@ -11,7 +11,13 @@ node i it tries two kinds of tail into the goal region:
   what the extremal has to straighten), and U's prediction for (x_i, goal) where the learned
   J says that edge may be cheaper;
 - the LQR goal loop (`lqr.GoalLQR`, as the planner's LQR connection runs it: a chain of
-  constant-input edges), where the settings allow it and the goal has an equilibrium.
+  constant-input edges), where the settings allow it and the goal has an equilibrium;
+- there too, the finite-horizon law with the plan's own running cost (`lqr.GoalLQ`; a chain
+  of held inputs, kind ``lqr``): its horizon the least predicted cost's, run only where that
+  prediction undercuts the best path, and kept only where the plan's step resolves it (the
+  path replayed at half the step ends within the goal tolerance of where it ends at the
+  step, as `evaluate.step_check` judges the whole path); a run the step does not resolve
+  shortens the horizon for the rest of the walk (`LQ_SHORTER`).
 The cheapest tail that reaches the goal region, passes every check of a planner edge (state
 box, obstacles, input limit) and makes the cost to come of x_i plus its cost less than the
 best path's is added to the tree as new leaves below node i, and becomes the best path; the
@@ -30,14 +36,85 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rrtcolearn.planning.connections import goal_lqr, lqr_chain, shoot_edge
+from rrtcolearn.evaluate import edge_trajectory, end_gap
+from rrtcolearn.integrate import propagate
+from rrtcolearn.planning.connections import goal_lqr, held_chain, lqr_chain, shoot_edge
 from rrtcolearn.planning.contracts import Edge
 from rrtcolearn.planning.improve.common import costs_to_come, grafted, recorded
 from rrtcolearn.planning.learned import goal_query
+from rrtcolearn.planning.lqr import GoalLQ
 from rrtcolearn.planning.tree import Plan
 
 if TYPE_CHECKING:
+    from rrtcolearn.planning.propagator import Propagator
     from rrtcolearn.planning.rrt import RRTCoLearn
+
+# the `GoalLQ` tail (`lq_tail`): at most this many runs per call, and after a run its step
+# does not resolve the horizons tried are at most this share of that run's length
+LQ_TRIES, LQ_SHORTER = 4, 0.7
+
+
+def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: float
+            ) -> tuple[int, list[Edge]] | None:
+    """The cheapest path's tail by the finite-horizon law with the plan's own running cost
+    (`lqr.GoalLQ`): (the position on ``path`` to graft at, the chain), or None. The law's
+    cost is predicted from every node of the path for every horizon up to the least
+    predicted cost's (the model's time alone, w j dt, bounds it); the node and horizon
+    predicted cheapest are run, and the run kept if it reaches the goal region, undercuts
+    ``best`` and the plan's step resolves it: the path replayed at half the step ends within
+    the goal tolerance of where it ends at the step (`evaluate.end_gap`, as
+    `evaluate.step_check` judges the path). A run the step does not resolve caps the
+    horizons at `LQ_SHORTER` of its length; at most `LQ_TRIES` runs."""
+    prob, s = propagator.problem, propagator.settings
+    w, dt = s.time_weight, s.dt
+    lq = GoalLQ(lqr, propagator.input_weight, w)
+    tree = plan.tree
+    come = costs_to_come(tree, path)[:-1]  # (not the goal node: nothing to replace there)
+    xs = tree.states[path[:-1]]
+    e = lqr.offset(xs)
+    n = max(1, round(lqr.horizon / dt))
+    limit = best / (w * dt)
+    while True:  # horizons doubled while the least predicted cost is at the longest
+        lq.extend(n)
+        P = np.asarray(lq.P[: n + 1])
+        cost = (0.5 * np.einsum("ai,jik,ak->aj", e, P, e) + e @ np.asarray(lq.p[: n + 1]).T
+                + np.asarray(lq.c[: n + 1])) + come[:, None]
+        cost[:, 0] = np.inf
+        a, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
+        limit = min(limit, (cost[a, j] - come.min()) / (w * dt))
+        if j < 0.9 * n or n >= limit:
+            break
+        n = int(min(limit, 2 * n))
+    runs = 0
+    # the path's states at half the step, up to each node (replayed once, as needed)
+    sys, half = prob.system, 0.5 * float(plan.dt)
+    edges = plan.edges()
+    halves = [np.asarray(prob.start, dtype=np.float64)]
+    while runs < LQ_TRIES:
+        a, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
+        if not cost[a, j] < best:
+            return None
+        runs += 1
+        out = lq.run(tree.states[path[a]], int(j), propagator.box, propagator.goal_mask,
+                     prob.validity if prob.validity else None)
+        if not out.reached:
+            cost[a] = np.inf
+            continue
+        if come[a] + sum(propagator.hold_rate(u) * dt for u in out.inputs) >= best:
+            cost[a] = np.inf
+            continue
+        while len(halves) <= a:
+            x = halves[-1]
+            halves.append(edge_trajectory(sys, {**edges[len(halves) - 1], "from": x.tolist()},
+                                          plan.time_weight, half).states[-1])
+        y = halves[a]
+        for u in out.inputs:
+            y = propagate(sys, y, u, half, 2)[-1]
+        if end_gap(prob, out.states[-1], y) < prob.goal_tolerance:
+            return int(a), held_chain(propagator, out)
+        cost[:, int(LQ_SHORTER * len(out.inputs)) + 1:] = np.inf
+    return None
+
 
 def goal_shortcuts(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = None
                    ) -> Plan:
@@ -65,7 +142,15 @@ def goal_shortcuts(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | N
     can_shoot = sys.params_from_costate is not None
     path = list(plan.path_nodes)
     best = float(costs_to_come(tree, path)[-1])
-    added, shots, loops = 0, 0, 0
+    added, shots, loops, lq_kept = 0, 0, 0, 0
+    if lqr is not None and w > 0:
+        found = lq_tail(prop, lqr, plan, path, best)
+        if found is not None:
+            at, tail = found
+            path = grafted(tree, path, at, [(edge, "lqr") for edge in tail], s.dt)
+            added += len(tail)
+            lq_kept = 1
+            best = float(costs_to_come(tree, path)[-1])
     pos = len(path) - 2  # the last edge's parent: U's guess may beat the edge the tree had
     while pos >= 0:
         if stop is not None and stop():
@@ -110,7 +195,8 @@ def goal_shortcuts(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | N
             best = float(come[pos] + min(costs))
         pos -= 1
     return recorded(plan, prop, path if added else None, "shortcuts",
-                     {"added": added, "shots": shots, "lqr_loops": loops})
+                     {"added": added, "shots": shots, "lqr_loops": loops,
+                      "lq_tail": lq_kept})
 
 
 def goal_tail(planner: RRTCoLearn, lqr, x0: np.ndarray, budget: float,
