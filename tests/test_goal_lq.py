@@ -134,3 +134,27 @@ def test_a_tail_the_step_does_not_resolve_is_not_kept(system, monkeypatch):
     assert len(runs) == goal_module.LQ_TRIES
     # each run after an unresolved one is shorter than LQ_SHORTER of it
     assert all(b <= goal_module.LQ_SHORTER * a + 1 for a, b in pairwise(runs))
+
+
+def test_a_run_stops_trying_the_law_where_it_never_keeps_a_tail(system, monkeypatch):
+    """`LQ_PATIENCE`: calls without a kept tail stop the law after LQ_PATIENCE calls; the
+    record belongs to the run (a plain solve begins a new one)."""
+    planner, _, plan = _random_plan(system)
+    monkeypatch.setattr(goal_module, "end_gap", lambda *a: np.inf)
+    runs = []
+    run = goal_module.GoalLQ.run
+
+    def counted(self, *a, **k):
+        runs.append(a[1])
+        return run(self, *a, **k)
+    monkeypatch.setattr(goal_module.GoalLQ, "run", counted)
+    per_call = []
+    for _ in range(goal_module.LQ_PATIENCE + 2):
+        before = len(runs)
+        goal_shortcuts(planner, plan)
+        per_call.append(len(runs) - before)
+    assert per_call == [goal_module.LQ_TRIES] * goal_module.LQ_PATIENCE + [0, 0]
+    planner.solve(TerminationCondition(None, 3000), 0)  # a new run of the query
+    before = len(runs)
+    goal_shortcuts(planner, plan)
+    assert len(runs) - before == goal_module.LQ_TRIES

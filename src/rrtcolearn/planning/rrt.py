@@ -123,6 +123,9 @@ class RRTCoLearn:
         self.extra_connections = tuple(connections)
         # the goal funnel of the last query solved: its key and its stream (`funnel_stream`)
         self._funnel: tuple[tuple, FunnelStream] | None = None
+        # what the improvements of the current run of a query record for their later calls
+        # (name -> record; `improve.goal.lq_tail`): emptied when a run begins (`solve`)
+        self.run_records: dict[str, list] = {}
 
     def solve(self, termination: TerminationCondition, seed: int | np.random.SeedSequence = 0,
               control_scale: float = 1.0, query: int | np.random.SeedSequence | None = None
@@ -150,6 +153,7 @@ class RRTCoLearn:
         termination.start()
         if query is None:  # a query of its own, or an anytime run's first solve
             self.funnel_stream(seed).begin()
+            self.run_records = {}
         # a goal funnel asked for is built here: it counts as planning
         run = self.start(rng, seed if query is None else query)
         tree, progress, schedule = run.tree, run.progress, run.schedule

@@ -31,6 +31,7 @@ path cheaper lasts at most (best - cost to come of x_i) / w.
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -52,10 +53,17 @@ if TYPE_CHECKING:
 # the `GoalLQ` tail (`lq_tail`): at most this many runs per call, and after a run its step
 # does not resolve the horizons tried are at most this share of that run's length
 LQ_TRIES, LQ_SHORTER = 4, 0.7
+# the calls of one anytime run try the law while they number fewer than this many times
+# (1 + the calls that kept a tail): where it never pays (the shipped cart-pole's swing-up,
+# outside the linearisation's reach, whose tables alone took 0.86 s) it stops after two,
+# where it does (sparse_rrt's cart-pole transfer) it goes on
+LQ_PATIENCE = 2
+# each planner's law (`GoalLQ`), by its propagator: built and grown once per query
+_LAWS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: float
-            ) -> tuple[int, list[Edge]] | None:
+def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: float,
+            record: list[int] | None = None) -> tuple[int, list[Edge]] | None:
     """The cheapest path's tail by the finite-horizon law with the plan's own running cost
     (`lqr.GoalLQ`): (the position on ``path`` to graft at, the chain), or None. The law's
     cost is predicted from every node of the path for every horizon up to the least
@@ -64,10 +72,18 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
     ``best`` and the plan's step resolves it: the path replayed at half the step ends within
     the goal tolerance of where it ends at the step (`evaluate.end_gap`, as
     `evaluate.step_check` judges the path). A run the step does not resolve caps the
-    horizons at `LQ_SHORTER` of its length; at most `LQ_TRIES` runs."""
+    horizons at `LQ_SHORTER` of its length; at most `LQ_TRIES` runs; a planner whose calls
+    keep no tail stops trying (`LQ_PATIENCE`; ``record``: [calls, calls that kept a
+    tail] of the run so far, updated; `RRTCoLearn.run_records`)."""
     prob, s = propagator.problem, propagator.settings
     w, dt = s.time_weight, s.dt
-    lq = GoalLQ(lqr, propagator.input_weight, w)
+    record = [0, 0] if record is None else record
+    if record[0] >= LQ_PATIENCE * (record[1] + 1):
+        return None
+    record[0] += 1
+    lq = _LAWS.get(propagator)
+    if lq is None:  # the law's tables depend on the query's goal and cost alone: kept
+        lq = _LAWS[propagator] = GoalLQ(lqr, propagator.input_weight, w)
     tree = plan.tree
     come = costs_to_come(tree, path)[:-1]  # (not the goal node: nothing to replace there)
     xs = tree.states[path[:-1]]
@@ -111,6 +127,7 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
         for u in out.inputs:
             y = propagate(sys, y, u, half, 2)[-1]
         if end_gap(prob, out.states[-1], y) < prob.goal_tolerance:
+            record[1] += 1
             return int(a), held_chain(propagator, out)
         cost[:, int(LQ_SHORTER * len(out.inputs)) + 1:] = np.inf
     return None
@@ -144,7 +161,8 @@ def goal_shortcuts(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | N
     best = float(costs_to_come(tree, path)[-1])
     added, shots, loops, lq_kept = 0, 0, 0, 0
     if lqr is not None and w > 0:
-        found = lq_tail(prop, lqr, plan, path, best)
+        found = lq_tail(prop, lqr, plan, path, best,
+                        planner.run_records.setdefault("lq_tail", [0, 0]))
         if found is not None:
             at, tail = found
             path = grafted(tree, path, at, [(edge, "lqr") for edge in tail], s.dt)
