@@ -119,8 +119,9 @@ def test_goal_shortcuts_take_the_lq_tail_and_the_path_replays(system):
     assert total == pytest.approx(got.path_cost, rel=1e-9)
 
 
-def test_a_tail_the_step_does_not_resolve_is_not_kept(system, monkeypatch):
-    planner, _, plan = _random_plan(system)
+def _never_resolved(monkeypatch) -> list[int]:
+    """Every tail's end gap made infinite (never resolved); the horizons of the law's runs
+    are appended to the list returned."""
     runs = []
     run = goal_module.GoalLQ.run
 
@@ -129,6 +130,12 @@ def test_a_tail_the_step_does_not_resolve_is_not_kept(system, monkeypatch):
         return run(self, *a, **k)
     monkeypatch.setattr(goal_module.GoalLQ, "run", counted)
     monkeypatch.setattr(goal_module, "end_gap", lambda *a: np.inf)
+    return runs
+
+
+def test_a_tail_the_step_does_not_resolve_is_not_kept(system, monkeypatch):
+    planner, _, plan = _random_plan(system)
+    runs = _never_resolved(monkeypatch)
     got = goal_shortcuts(planner, plan)
     assert got.extra["shortcuts"]["lq_tail"] == 0
     assert len(runs) == goal_module.LQ_TRIES
@@ -140,14 +147,7 @@ def test_a_run_stops_trying_the_law_where_it_never_keeps_a_tail(system, monkeypa
     """`LQ_PATIENCE`: calls without a kept tail stop the law after LQ_PATIENCE calls; the
     record belongs to the run (a plain solve begins a new one)."""
     planner, _, plan = _random_plan(system)
-    monkeypatch.setattr(goal_module, "end_gap", lambda *a: np.inf)
-    runs = []
-    run = goal_module.GoalLQ.run
-
-    def counted(self, *a, **k):
-        runs.append(a[1])
-        return run(self, *a, **k)
-    monkeypatch.setattr(goal_module.GoalLQ, "run", counted)
+    runs = _never_resolved(monkeypatch)
     per_call = []
     for _ in range(goal_module.LQ_PATIENCE + 2):
         before = len(runs)
