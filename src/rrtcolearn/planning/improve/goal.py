@@ -11,13 +11,12 @@ node i it tries two kinds of tail into the goal region:
   what the extremal has to straighten), and U's prediction for (x_i, goal) where the learned
   J says that edge may be cheaper;
 - the LQR goal loop (`lqr.GoalLQR`, as the planner's LQR connection runs it: a chain of
-  constant-input edges), where the settings allow it and the goal has an equilibrium;
-- there too, the finite-horizon law with the plan's own running cost (`lqr.GoalLQ`; a chain
-  of held inputs, kind ``lqr``): its horizon the least predicted cost's, run only where that
-  prediction undercuts the best path, and kept only where the plan's step resolves it (the
-  path replayed at half the step ends within the goal tolerance of where it ends at the
-  step, as `evaluate.step_check` judges the whole path); a run the step does not resolve
-  shortens the horizon for the rest of the walk (`LQ_SHORTER`).
+  constant-input edges), where the settings allow it and the goal has an equilibrium.
+Before the walk, where that loop exists, the finite-horizon law with the plan's own running
+cost (`lq_tail`, `lqr.GoalLQ`; a chain of held inputs, kind ``lqr``) from the node and over
+the horizon it predicts cheapest, kept only where it undercuts the path and the plan's step
+resolves it (the path replayed at half the step ends within the goal tolerance of where it
+ends at the step, as `evaluate.step_check` judges the whole path).
 The cheapest tail that reaches the goal region, passes every check of a planner edge (state
 box, obstacles, input limit) and makes the cost to come of x_i plus its cost less than the
 best path's is added to the tree as new leaves below node i, and becomes the best path; the
@@ -77,6 +76,8 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
     tail] of the run so far, updated; `RRTCoLearn.run_records`)."""
     prob, s = propagator.problem, propagator.settings
     w, dt = s.time_weight, s.dt
+    if not (w > 0 and np.isfinite(best)):  # (no free final time to choose, or no path)
+        return None
     record = [0, 0] if record is None else record
     if record[0] >= LQ_PATIENCE * (record[1] + 1):
         return None
@@ -98,9 +99,10 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
         cost[:, 0] = np.inf
         a, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
         limit = min(limit, (cost[a, j] - come.min()) / (w * dt))
-        if j < 0.9 * n or n >= limit:
+        longer = int(min(limit, 2 * n))
+        if j < 0.9 * n or longer <= n:
             break
-        n = int(min(limit, 2 * n))
+        n = longer
     runs = 0
     # the path's states at half the step, up to each node (replayed once, as needed)
     sys, half = prob.system, 0.5 * float(plan.dt)
