@@ -122,11 +122,7 @@ def main(argv=None) -> None:
               f"N {seed.n_intervals}, {seed.status}", flush=True)
     if args.path_file:
         with np.load(args.path_file) as f:
-            t, x, u = f["t"], f["state"], f["input"]
-        # a re-simulated path repeats the node where two edges join (a zero-length step):
-        # keep the later copy, whose input is the next edge's
-        keep = np.r_[np.diff(t) > 0, True]
-        seed = (t[keep], x[keep], u[keep][:-1])
+            seed = (f["t"], f["state"], f["input"][:-1])
         print(f"path guess: {args.path_file}, T {float(seed[0][-1]):.4g} s", flush=True)
     for name in args.problems.split(","):
         make_problem, goal_distance, durations = table[name]

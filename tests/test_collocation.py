@@ -98,6 +98,17 @@ def test_a_path_guess_warm_starts_a_finer_grid(pendulum):
     path = (t, coarse.states, coarse.control_at(mids))
     again = optimal_cost(pendulum, START, GOAL, n_intervals=20, durations=(), path=path)
     assert again.success and again.cost == pytest.approx(SWING_UP, rel=1e-5)
+    # a re-simulated plan's rows (`evaluate.sample_path`) repeat the node where two edges
+    # join, at one time, the later copy with the next edge's input: it guesses alike
+    k = len(t) // 2
+    twice = (np.insert(t, k, t[k]), np.insert(coarse.states, k, coarse.states[k], axis=0),
+             np.insert(path[2], k, [[1e3]], axis=0))  # the earlier copy's input: dropped
+    joined = optimal_cost(pendulum, START, GOAL, n_intervals=20, durations=(), path=twice)
+    assert joined.success and joined.cost == pytest.approx(again.cost, rel=1e-9)
+    assert joined.attempts[0]["iterations"] == again.attempts[0]["iterations"]
+    with pytest.raises(ValueError, match="increasing"):
+        optimal_cost(pendulum, START, GOAL, n_intervals=20, durations=(),
+                     path=(t[::-1], coarse.states, path[2]))
     # the search-then-refine mode
     both = optimal_cost(pendulum, START, GOAL, n_intervals=30, search_intervals=10,
                         durations=(3.0, 6.0), t_max=15.0)

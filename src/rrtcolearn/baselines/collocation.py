@@ -371,9 +371,15 @@ def _path_guess(path, N, m, angles):
     except (TypeError, ValueError):
         raise ValueError("path must be (times (K,), states (K, n), controls (K-1 or K, m))"
                          ) from None
-    if times.ndim != 1 or len(times) < 2 or not np.all(np.diff(times) > 0) \
-            or not np.all(np.isfinite(times)):
+    if times.ndim != 1 or len(times) < 2 or not np.all(np.diff(times) >= 0) \
+            or not np.all(np.isfinite(times)) or not times[-1] > times[0]:
         raise ValueError("path times must be at least 2 finite increasing numbers")
+    if len(states) == len(times) and len(controls) in (len(times) - 1, len(times)):
+        # a re-simulated path (`evaluate.sample_path`) repeats the node where two edges
+        # join, at one time: the later copy kept, whose input is the next edge's
+        keep = np.r_[np.diff(times) > 0, True]
+        times, states = times[keep], states[keep]
+        controls = controls[keep[: len(controls)]]
     if states.ndim != 2 or len(states) != len(times) or not np.all(np.isfinite(states)):
         raise ValueError(f"path states must be ({len(times)}, n) finite numbers, got shape "
                          f"{states.shape}")
