@@ -5,6 +5,7 @@ plans stay a function of their seeds whatever ran before them."""
 from __future__ import annotations
 
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ import pytest
 import rrtcolearn.planning.funnel as funnel_module
 from rrtcolearn.anytime import solve_with_restarts
 from rrtcolearn.planning.funnel import FUNNEL_STREAM, FunnelStream, GoalFunnel
+from rrtcolearn.planning.improve import shortcut
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.rrt import RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
@@ -152,10 +154,6 @@ def test_an_anytime_query_with_its_shortcuts_is_the_same_whatever_ran_before(new
     run of the query: a second run on the same planner is the first run, bit for bit, not
     its continuation. (Two runs of one seed back to back once gave the second the first's
     search rounds: an A/B's result then followed the order, not the variant.)"""
-    from functools import partial
-
-    from rrtcolearn.planning.improve import shortcut
-
     def run(planner):
         return solve_with_restarts(planner.solve, TerminationCondition(None, BUDGET), 1,
                                    improve=partial(shortcut, planner), in_steps=True)
