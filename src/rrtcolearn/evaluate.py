@@ -4,6 +4,7 @@ claims (`check_plan`)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, NoReturn
 
@@ -204,6 +205,17 @@ def plan_problem(system: System, plan, goal_fn=None) -> PlanningProblem:
                            goal_weights=problem.goal_weights, goal_fn=problem.goal_fn)
 
 
+def replayed_edges(system: System, edges: list[dict], time_weight: float, dt: float,
+                   x0: np.ndarray) -> Iterator[EdgeTrajectory]:
+    """Each of ``edges`` (`Plan.edges`) re-integrated at the step ``dt`` from where the one
+    before it ended (`edge_trajectory`), the first from ``x0``, as asked for."""
+    x = np.asarray(x0, dtype=np.float64)
+    for e in edges:
+        t = edge_trajectory(system, {**e, "from": x.tolist()}, time_weight, dt)
+        yield t
+        x = t.states[-1]
+
+
 def replay(problem, plan, dt: float | None = None) -> dict:
     """Re-integrate a plan's path (any planner's `Plan`) from the problem's start, each edge
     from where the previous one ended (`edge_trajectory`, not from the stored nodes), and
@@ -223,8 +235,7 @@ def replay(problem, plan, dt: float | None = None) -> dict:
     x = np.asarray(problem.start, dtype=np.float64)
     cost = duration = max_u = 0.0
     valid = inputs_ok = True
-    for e in plan.edges():
-        t = edge_trajectory(system, {**e, "from": x.tolist()}, plan.time_weight, dt)
+    for t in replayed_edges(system, plan.edges(), plan.time_weight, dt, x):
         max_u = max(max_u, float(np.abs(t.inputs).max()))
         inputs_ok &= bool(np.all((t.inputs >= low_u - 1e-9) & (t.inputs <= high_u + 1e-9)))
         states = t.states[1:]

@@ -36,8 +36,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rrtcolearn.evaluate import edge_trajectory, end_gap
-from rrtcolearn.integrate import propagate
+from rrtcolearn.evaluate import end_gap, replayed_edges
+from rrtcolearn.integrate import propagate_controls
 from rrtcolearn.planning.connections import goal_lqr, held_chain, lqr_chain, shoot_edge
 from rrtcolearn.planning.contracts import Edge
 from rrtcolearn.planning.improve.common import costs_to_come, grafted, recorded
@@ -106,7 +106,8 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
     runs = 0
     # the path's states at half the step, up to each node (replayed once, as needed)
     sys, half = prob.system, 0.5 * float(plan.dt)
-    edges = plan.edges()
+    ends = (t.states[-1] for t in replayed_edges(sys, plan.edges(), plan.time_weight, half,
+                                                 prob.start))
     halves = [np.asarray(prob.start, dtype=np.float64)]
     while runs < LQ_TRIES:
         a, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
@@ -122,12 +123,9 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
             cost[a] = np.inf
             continue
         while len(halves) <= a:
-            x = halves[-1]
-            halves.append(edge_trajectory(sys, {**edges[len(halves) - 1], "from": x.tolist()},
-                                          plan.time_weight, half).states[-1])
-        y = halves[a]
-        for u in out.inputs:
-            y = propagate(sys, y, u, half, 2)[-1]
+            halves.append(next(ends))
+        y = propagate_controls(sys, halves[a], out.inputs, np.full(len(out.inputs), 2),
+                               half)[-1]
         if end_gap(prob, out.states[-1], y) < prob.goal_tolerance:
             record[1] += 1
             return int(a), held_chain(propagator, out)
