@@ -144,7 +144,8 @@ class GoalLQR:
 
     x_e, u_e : the equilibrium; K (m, n) the gain, P (n, n) the Riccati solution (the
     Lyapunov function (x - x_e)' P (x - x_e)); u_low, u_high the clipping box (+-inf where
-    free); ``spectral_radius`` that of the closed loop A - B K; ``time_constant`` (s) that
+    free); ``spectral_radius`` that of the closed loop A - B K (A, B: the RK4 step map's
+    Jacobians at the equilibrium); ``time_constant`` (s) that
     of its slowest mode the loop moves (`_UNMOVED`).
     """
 
@@ -158,6 +159,8 @@ class GoalLQR:
     u_high: np.ndarray
     spectral_radius: float
     time_constant: float
+    A: np.ndarray  # the linearisation: the RK4 step map's Jacobians at (x_e, u_e)
+    B: np.ndarray
 
     @property
     def horizon(self) -> float:
@@ -298,7 +301,8 @@ def build_goal_lqr(problem: PlanningProblem, dt: float, input_weight: np.ndarray
     if not len(moved):
         return "the LQR closed loop moves no mode (every eigenvalue within 1e-6 of 1)"
     tau = -float(dt) / float(np.log(moved.max())) if moved.max() > 0.0 else float(dt)
-    return GoalLQR(problem, float(dt), x_e, u_e, K, 0.5 * (P + P.T), u_low, u_high, rho, tau)
+    return GoalLQR(problem, float(dt), x_e, u_e, K, 0.5 * (P + P.T), u_low, u_high, rho, tau,
+                   A, B)
 
 
 # `GoalLQ`'s terminal weight, as a multiple of Bryson's state weight per second (1 / h_i^2,
@@ -330,12 +334,10 @@ class GoalLQ:
     def __init__(self, lqr: GoalLQR, input_weight: np.ndarray, time_weight: float):
         prob, dt = lqr.problem, lqr.dt
         self.lqr, self.dt, self.w = lqr, dt, float(time_weight)
-        sys = prob.system
-        A, B = step_jacobians(sys, lqr.x_e, lqr.u_e, dt)
-        self.A, self.B = A, B
+        self.A, self.B = lqr.A, lqr.B
         self.R = np.asarray(input_weight, dtype=np.float64)
         Q, _ = bryson_weights(prob, dt, np.diag(self.R))
-        n, m = B.shape
+        n, m = self.B.shape
         self.P = [LQ_TERMINAL * Q / dt]  # the value's (n, n) per horizon, 0 first
         self.p, self.c = [np.zeros(n)], [0.0]
         self.K: list[np.ndarray] = [np.zeros((m, n))]  # K[j]: the first step's of horizon j
