@@ -85,6 +85,30 @@ def test_a_run_reaches_the_goal_at_the_optimum_and_replays_by_hand(system):
     assert 0.9 * best <= cost <= 1.01 * best
 
 
+def test_the_compiled_run_is_the_time_varying_law(system):
+    """`GoalLQ.run` compiled (`integrate.closed_loop_jit`, a gain per step) and in numpy (a
+    System without the kernel) give the same run, whose input at step i is the law of the
+    horizon j's table row j - i, recomputed here from the tables, clipped to the box."""
+    import dataclasses
+
+    problem = _problem(system, u_max=1.5)
+    lqr, lq = _law(system, problem)
+    plain = dataclasses.replace(problem, system=dataclasses.replace(system,
+                                                                    closed_loop_jit=None))
+    lq_plain = GoalLQ(dataclasses.replace(lqr, problem=plain), np.eye(1), W)
+    box = (np.full(2, -np.inf), np.full(2, np.inf))
+    never = lambda s: np.zeros(len(s), bool)  # noqa: E731
+    j = 250
+    a, b = lq.run(X0, j, box, never), lq_plain.run(X0, j, box, never)
+    assert a.end == b.end == "timeout" and len(a.inputs) == j
+    np.testing.assert_allclose(a.states, b.states, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(a.inputs, b.inputs, rtol=0, atol=1e-12)
+    want = [np.clip(lqr.u_e - lq.K[j - i] @ (x - lqr.x_e) - lq.k[j - i], -1.5, 1.5)
+            for i, x in enumerate(a.states[:-1])]
+    np.testing.assert_allclose(a.inputs, want, rtol=0, atol=1e-12)
+    assert np.abs(a.inputs).max() == pytest.approx(1.5)  # the box clipped some inputs
+
+
 def _random_plan(system, seed=0):
     """A plan on random controls and the Bryson LQR connection alone (no learned
     functions), its inputs in |u| <= 2."""
@@ -138,9 +162,39 @@ def test_a_tail_the_step_does_not_resolve_is_not_kept(system, monkeypatch):
     runs = _never_resolved(monkeypatch)
     got = goal_shortcuts(planner, plan)
     assert got.extra["shortcuts"]["lq_tail"] == 0
-    assert len(runs) == goal_module.LQ_TRIES
+    assert 3 <= len(runs) <= goal_module.LQ_TRIES
     # each run after an unresolved one is shorter than LQ_SHORTER of it
     assert all(b <= goal_module.LQ_SHORTER * a + 1 for a, b in pairwise(runs))
+
+
+def test_the_horizon_is_bisected_between_resolved_and_unresolved(system, monkeypatch):
+    """Runs longer than ``longest`` steps made unresolved: after the first resolved run the
+    horizons lie between the longest resolved and the shortest unresolved run, and the tail
+    kept is resolved, longer and cheaper than that first resolved run's."""
+    planner, _, plan = _random_plan(system)
+    horizons, lengths = [], []
+    run = goal_module.GoalLQ.run
+
+    def counted(self, *a, **k):
+        out = run(self, *a, **k)
+        horizons.append(a[1])
+        lengths.append(len(out.inputs))
+        return out
+    monkeypatch.setattr(goal_module.GoalLQ, "run", counted)
+    longest = 200
+    monkeypatch.setattr(goal_module, "end_gap",
+                        lambda *a: 0.0 if lengths[-1] <= longest else np.inf)
+    got = goal_shortcuts(planner, plan)
+    assert got.extra["shortcuts"]["lq_tail"] == 1
+    first = next(i for i, n in enumerate(lengths) if n <= longest)
+    assert first >= 1 and len(lengths) > first + 1  # the bisection ran
+    for i in range(first + 1, len(lengths)):
+        lo = max(n for n in lengths[:i] if n <= longest)
+        hi = min(n for n in lengths[:i] if n > longest)
+        assert lo < horizons[i] <= (lo + hi) // 2 + 1
+    assert max(n for n in lengths if n <= longest) > lengths[first]
+    monkeypatch.setattr(goal_module, "LQ_TRIES", first + 1)  # stopped at the first resolved
+    assert got.path_cost < goal_shortcuts(planner, plan).path_cost
 
 
 def test_a_run_stops_trying_the_law_where_it_never_keeps_a_tail(system, monkeypatch):
@@ -153,8 +207,8 @@ def test_a_run_stops_trying_the_law_where_it_never_keeps_a_tail(system, monkeypa
         before = len(runs)
         goal_shortcuts(planner, plan)
         per_call.append(len(runs) - before)
-    assert per_call == [goal_module.LQ_TRIES] * goal_module.LQ_PATIENCE + [0, 0]
+    assert all(per_call[:goal_module.LQ_PATIENCE]) and per_call[goal_module.LQ_PATIENCE:] == [0, 0]
     planner.solve(TerminationCondition(None, 3000), 0)  # a new run of the query
     before = len(runs)
     goal_shortcuts(planner, plan)
-    assert len(runs) - before == goal_module.LQ_TRIES
+    assert len(runs) - before == per_call[0]

@@ -185,12 +185,14 @@ def propagate_jit(x0, inputs, lengths, dt, low, high):
 
 
 @_numba.njit(cache=True)
-def closed_loop_jit(x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps, low, high):
-    # the LQR goal connection's loop (planning/lqr.py): u = clip(u_e - K e, u_low, u_high)
-    # held for each RK4 step, e = x - x_e with the coordinates where wrap is true modulo a
-    # turn. It stops after max_steps steps (how = 0), before the first state outside
-    # [low, high] or not finite (1), or after the first state whose value e'Pe exceeds the
-    # start's (2): (states (k + 1, n), inputs (k, m), how)
+def closed_loop_jit(x0, x_e, u_e, K, k, P, u_low, u_high, wrap, dt, max_steps, low, high):
+    # the goal connections' loops (planning/lqr.py): u = clip(u_e - K[t] e - k[t], u_low,
+    # u_high) held for the RK4 step s, t = min(s, T - 1) (K (T, m, n), k (T, m): the LQR
+    # connection's constant gain has T = 1, the finite-horizon law's a gain per step),
+    # e = x - x_e with the coordinates where wrap is true modulo a turn. It stops after
+    # max_steps steps (how = 0), before the first state outside [low, high] or not finite
+    # (1), or after the first state whose value e'Pe exceeds the start's (2; never with
+    # P = 0): (states (k + 1, n), inputs (k, m), how)
     n = x0.shape[0]
     m = u_e.shape[0]
     states = _np.empty((max_steps + 1, n))
@@ -223,10 +225,11 @@ def closed_loop_jit(x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps, low,
             return states[: s + 1], inputs[:s], 2
         if s == max_steps:
             break
+        t = min(s, K.shape[0] - 1)
         for i in range(m):
-            acc = u_e[i]
+            acc = u_e[i] - k[t, i]
             for j in range(n):
-                acc -= K[i, j] * e[j]
+                acc -= K[t, i, j] * e[j]
             u[i] = min(max(acc, u_low[i]), u_high[i])
         _rk4_plain_step(x, u, dt, k1, k2, k3, k4, tmp, states[s + 1])
         inside = True

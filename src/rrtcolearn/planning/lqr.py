@@ -191,30 +191,42 @@ class GoalLQR:
         ``validity`` (the obstacle checker: states -> (N,) bool) rejects. The loop runs
         compiled to its end (`integrate.closed_loop_jit`); the goal test and the obstacle
         check then run once on its states."""
-        sys = self.problem.system
-        low, high = box
-        wrap = np.zeros(x0.size, bool)
-        wrap[list(self.problem.goal_angles)] = True
-        args = (np.ascontiguousarray(x0, dtype=np.float64), self.x_e, self.u_e, self.K,
-                self.P, self.u_low, self.u_high, wrap, float(self.dt), int(max_steps),
-                low, high)
-        states, inputs, how = sys.closed_loop_jit(*args) if sys.closed_loop_jit is not None \
-            else _closed_loop(sys, *args)
-        hits = np.flatnonzero(goal_mask(states[1:])) if len(states) > 1 else _NO_HITS
-        end = int(hits[0]) + 1 if hits.size else len(inputs)
-        if validity and end and not validity(states[1 : end + 1]).all():
-            return LQRTry(states[: end + 1], inputs[:end], "obstacle")
-        if hits.size:
-            return LQRTry(states[: end + 1], inputs[:end], "reached")
-        return LQRTry(states, inputs, ("timeout", "box", "basin")[how])
+        m = self.u_e.size
+        return _loop(self, x0, self.K[None], np.zeros((1, m)), self.P, max_steps, box,
+                     goal_mask, validity)
+
+
+def _loop(lqr: GoalLQR, x0: np.ndarray, K: np.ndarray, k: np.ndarray, P: np.ndarray,
+          max_steps: int, box: tuple[np.ndarray, np.ndarray], goal_mask, validity) -> LQRTry:
+    """The law u = clip(u_e - K[t] (x - x_e) - k[t]) at step t (the last gain held beyond
+    its rows) from ``x0`` by `integrate.closed_loop_jit` (compiled; `_closed_loop` for a
+    System without), cut at the first state in the goal region, then checked for obstacles
+    once: `GoalLQR.run` (one gain, the Lyapunov value's stop) and `GoalLQ.run` (a gain per
+    step, ``P`` = 0: no such stop) both run it."""
+    sys = lqr.problem.system
+    low, high = box
+    wrap = np.zeros(x0.size, bool)
+    wrap[list(lqr.problem.goal_angles)] = True
+    args = (np.ascontiguousarray(x0, dtype=np.float64), lqr.x_e, lqr.u_e,
+            np.ascontiguousarray(K, dtype=np.float64), np.ascontiguousarray(k, dtype=np.float64),
+            P, lqr.u_low, lqr.u_high, wrap, float(lqr.dt), int(max_steps), low, high)
+    states, inputs, how = sys.closed_loop_jit(*args) if sys.closed_loop_jit is not None \
+        else _closed_loop(sys, *args)
+    hits = np.flatnonzero(goal_mask(states[1:])) if len(states) > 1 else _NO_HITS
+    end = int(hits[0]) + 1 if hits.size else len(inputs)
+    if validity and end and not validity(states[1 : end + 1]).all():
+        return LQRTry(states[: end + 1], inputs[:end], "obstacle")
+    if hits.size:
+        return LQRTry(states[: end + 1], inputs[:end], "reached")
+    return LQRTry(states, inputs, ("timeout", "box", "basin")[how])
 
 
 _NO_HITS = np.empty(0, np.int64)
 
 
-def _closed_loop(system, x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps, low, high):
+def _closed_loop(system, x0, x_e, u_e, K, k, P, u_low, u_high, wrap, dt, max_steps, low, high):
     """`integrate.closed_loop_jit` in numpy, for a System built by hand without compiled
-    kernels (the same stops; `propagate` for the step)."""
+    kernels (the same law and stops; `propagate` for the step)."""
     states = np.empty((max_steps + 1, x0.size))
     inputs = np.empty((max_steps, u_e.size))
     states[0] = x0
@@ -225,15 +237,16 @@ def _closed_loop(system, x0, x_e, u_e, K, P, u_low, u_high, wrap, dt, max_steps,
         return float(e @ P @ e), e
 
     v0, e = value(x0)
-    for k in range(max_steps):
-        u = np.minimum(np.maximum(u_e - K @ e, u_low), u_high)
-        nxt = propagate(system, states[k], u, dt, 1)[1]
+    for s in range(max_steps):
+        t = min(s, len(K) - 1)
+        u = np.minimum(np.maximum(u_e - K[t] @ e - k[t], u_low), u_high)
+        nxt = propagate(system, states[s], u, dt, 1)[1]
         if not (np.all(low <= nxt) and np.all(nxt <= high)):  # NaN fails too
-            return states[: k + 1], inputs[:k], 1
-        states[k + 1], inputs[k] = nxt, u
+            return states[: s + 1], inputs[:s], 1
+        states[s + 1], inputs[s] = nxt, u
         v, e = value(nxt)
         if v > v0:
-            return states[: k + 2], inputs[: k + 1], 2
+            return states[: s + 2], inputs[: s + 1], 2
     return states, inputs, 0
 
 
@@ -377,27 +390,11 @@ class GoalLQ:
 
     def run(self, x0: np.ndarray, steps: int, box: tuple[np.ndarray, np.ndarray],
             goal_mask, validity=None) -> LQRTry:
-        """The law of the horizon ``steps`` from ``x0`` on the system (its RK4 step), cut at
-        the first state in the goal region; ends as `GoalLQR.run`'s ("reached", "box",
-        "obstacle", "timeout")."""
+        """The law of the horizon ``steps`` from ``x0`` on the system (its RK4 step; the
+        step i's gain K_(steps - i)), cut at the first state in the goal region; ends as
+        `GoalLQR.run`'s ("reached", "box", "obstacle", "timeout"), compiled likewise."""
         self.extend(steps)
-        sys, lqr = self.lqr.problem.system, self.lqr
-        low, high = box
-        states = np.empty((steps + 1, x0.size))
-        inputs = np.empty((steps, lqr.u_e.size))
-        states[0] = x = np.asarray(x0, dtype=np.float64)
-        for i in range(steps):
-            j = steps - i
-            u = np.clip(lqr.u_e - self.K[j] @ lqr.offset(x)[0] - self.k[j], lqr.u_low,
-                        lqr.u_high)
-            x = propagate(sys, x, u, self.dt, 1)[-1]
-            if not (np.all(low <= x) and np.all(x <= high)):  # NaN fails too
-                return LQRTry(states[: i + 1], inputs[:i], "box")
-            states[i + 1], inputs[i] = x, u
-            if goal_mask(x[None])[0]:
-                steps = i + 1
-                break
-        states, inputs = states[: steps + 1], inputs[:steps]
-        if validity and not validity(states[1:]).all():
-            return LQRTry(states, inputs, "obstacle")
-        return LQRTry(states, inputs, "reached" if goal_mask(states[-1:])[0] else "timeout")
+        n = self.A.shape[0]
+        order = slice(steps, 0, -1)
+        return _loop(self.lqr, x0, np.asarray(self.K[order]), np.asarray(self.k[order]),
+                     np.zeros((n, n)), steps, box, goal_mask, validity)

@@ -442,10 +442,10 @@ def load_kernels(system: System, explore: bool = False, lqr: bool = False,
     ]
     if explore:
         calls.append((system.explore_jit, lambda: _load_explore(system)))
-    if lqr:  # the argument types `lqr.GoalLQR.run` passes
+    if lqr:  # the argument types `lqr.GoalLQR.run` and `lqr.GoalLQ.run` pass
         calls.append((system.closed_loop_jit, lambda: system.closed_loop_jit(
-            x, x.copy(), np.zeros(m), np.zeros((m, n)), np.zeros((n, n)), -np.ones(m),
-            np.ones(m), np.zeros(n, bool), 0.01, 0, -inf, inf)))
+            x, x.copy(), np.zeros(m), np.zeros((1, m, n)), np.zeros((1, m)), np.zeros((n, n)),
+            -np.ones(m), np.ones(m), np.zeros(n, bool), 0.01, 0, -inf, inf)))
     if shooting:
         calls += shooting_kernels(system)
     for kernel, call in calls:

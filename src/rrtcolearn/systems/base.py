@@ -46,8 +46,9 @@ class System:
     propagate_jit : compiled RK4 of ``dynamics`` from ``x0`` under a batch of constant
         inputs, each held for its number of steps and stopped at the state constraints
         (`rrtcolearn.integrate.propagate_draws`, `rrtcolearn.integrate.propagate`).
-    closed_loop_jit : compiled RK4 of ``dynamics`` under a saturated linear feedback, the
-        LQR goal connection's loop (`rrtcolearn.planning.lqr.GoalLQR.run`).
+    closed_loop_jit : compiled RK4 of ``dynamics`` under a saturated affine feedback, constant
+        or one per step: the goal connections' loops (`rrtcolearn.planning.lqr.GoalLQR.run`,
+        `rrtcolearn.planning.lqr.GoalLQ.run`).
     hold_jit : compiled RK4 of ``dynamics`` under one held input into the caller's buffers
         (the OMPL peers' propagator, `rrtcolearn.baselines.ompl_planners`).
     rollout_draws_jit : compiled `rollout_jit` of a batch of costates from one state, checked

@@ -49,9 +49,10 @@ if TYPE_CHECKING:
     from rrtcolearn.planning.propagator import Propagator
     from rrtcolearn.planning.rrt import RRTCoLearn
 
-# the `GoalLQ` tail (`lq_tail`): at most this many runs per call, and after a run its step
-# does not resolve the horizons tried are at most this share of that run's length
-LQ_TRIES, LQ_SHORTER = 4, 0.7
+# the `GoalLQ` tail (`lq_tail`): at most this many runs per call; the first run the step
+# does not resolve caps the horizons tried at this share of its length, and once a run is
+# resolved the horizon is bisected between the longest resolved and the shortest unresolved
+LQ_TRIES, LQ_SHORTER = 8, 0.7
 # the calls of one anytime run try the law while they number fewer than this many times
 # (1 + the calls that kept a tail): where it never pays (the shipped cart-pole's swing-up,
 # outside the linearisation's reach, whose tables alone took 0.86 s) it stops after two,
@@ -71,7 +72,9 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
     ``best`` and the plan's step resolves it: the path replayed at half the step ends within
     the goal tolerance of where it ends at the step (`evaluate.end_gap`, as
     `evaluate.step_check` judges the path). A run the step does not resolve caps the
-    horizons at `LQ_SHORTER` of its length; at most `LQ_TRIES` runs; a planner whose calls
+    horizons at `LQ_SHORTER` of its length until one is resolved; then the horizon is
+    bisected between them (the cheapest resolved run kept); at most `LQ_TRIES` runs
+    (compiled: `lqr.GoalLQ.run`); a planner whose calls
     keep no tail stops trying (`LQ_PATIENCE`; ``record``: [calls, calls that kept a
     tail] of the run so far, updated; `RRTCoLearn.run_records`)."""
     prob, s = propagator.problem, propagator.settings
@@ -103,34 +106,47 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
         if j < 0.9 * n or longer <= n:
             break
         n = longer
-    runs = 0
     # the path's states at half the step, up to each node (replayed once, as needed)
     sys, half = prob.system, 0.5 * float(plan.dt)
     ends = (t.states[-1] for t in replayed_edges(sys, plan.edges(), plan.time_weight, half,
                                                  prob.start))
     halves = [np.asarray(prob.start, dtype=np.float64)]
-    while runs < LQ_TRIES:
-        a, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
-        if not cost[a, j] < best:
-            return None
-        runs += 1
+    # the horizons tried: longer than the kept run's (`floor`), at most `cap`; `lo` the
+    # longest run resolved (the tail `kept`, its cost `bound`, its predicted cost `guess`:
+    # a run cut at the goal region costs less than predicted, so predictions are compared
+    # with predictions), `hi` the shortest run reached but not resolved (runs' lengths)
+    cap, floor, lo, hi, kept, bound, guess = cost.shape[1] - 1, 0, 0, None, None, best, best
+    for _ in range(LQ_TRIES):
+        window = cost[:, floor + 1: cap + 1]
+        a, j = np.unravel_index(int(np.argmin(window)), window.shape)
+        j += floor + 1
+        if not cost[a, j] < guess:
+            break
         out = lq.run(tree.states[path[a]], int(j), propagator.box, propagator.goal_mask,
                      prob.validity if prob.validity else None)
-        if not out.reached:
-            cost[a] = np.inf
-            continue
-        if come[a] + sum(propagator.hold_rate(u) * dt for u in out.inputs) >= best:
+        total = come[a] + sum(propagator.hold_rate(u) * dt for u in out.inputs)
+        if not out.reached or total >= bound:
             cost[a] = np.inf
             continue
         while len(halves) <= a:
             halves.append(next(ends))
         y = propagate_controls(sys, halves[a], out.inputs, np.full(len(out.inputs), 2),
                                half)[-1]
+        steps = len(out.inputs)
         if end_gap(prob, out.states[-1], y) < prob.goal_tolerance:
-            record[1] += 1
-            return int(a), held_chain(propagator, out)
-        cost[:, int(LQ_SHORTER * len(out.inputs)) + 1:] = np.inf
-    return None
+            kept, bound, guess = (int(a), out), total, cost[a, j]
+            floor, lo = int(j), max(lo, steps)
+            if hi is None:  # the cheapest prediction, resolved: nothing longer to try
+                break
+        else:
+            hi = steps if hi is None else min(hi, steps)
+        cap = int(LQ_SHORTER * hi) if kept is None else (lo + hi) // 2
+        if cap <= floor:
+            break
+    if kept is None:
+        return None
+    record[1] += 1
+    return kept[0], held_chain(propagator, kept[1])
 
 
 def goal_shortcuts(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = None
