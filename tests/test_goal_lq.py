@@ -181,7 +181,7 @@ def test_the_horizon_is_bisected_between_resolved_and_unresolved(system, monkeyp
         lengths.append(len(out.inputs))
         return out
     monkeypatch.setattr(goal_module.GoalLQ, "run", counted)
-    longest = 200
+    longest = 120
     monkeypatch.setattr(goal_module, "end_gap",
                         lambda *a: 0.0 if lengths[-1] <= longest else np.inf)
     got = goal_shortcuts(planner, plan)
@@ -189,9 +189,9 @@ def test_the_horizon_is_bisected_between_resolved_and_unresolved(system, monkeyp
     first = next(i for i, n in enumerate(lengths) if n <= longest)
     assert first >= 1 and len(lengths) > first + 1  # the bisection ran
     for i in range(first + 1, len(lengths)):
-        lo = max(n for n in lengths[:i] if n <= longest)
-        hi = min(n for n in lengths[:i] if n > longest)
-        assert lo < horizons[i] <= (lo + hi) // 2 + 1
+        lo = max(h for h, n in zip(horizons[:i], lengths, strict=False) if n <= longest)
+        hi = min(h for h, n in zip(horizons[:i], lengths, strict=False) if n > longest)
+        assert lo < horizons[i] <= (lo + hi) // 2
     assert max(n for n in lengths if n <= longest) > lengths[first]
     monkeypatch.setattr(goal_module, "LQ_TRIES", first + 1)  # stopped at the first resolved
     assert got.path_cost < goal_shortcuts(planner, plan).path_cost

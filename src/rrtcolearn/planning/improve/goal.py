@@ -111,15 +111,15 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
     ends = (t.states[-1] for t in replayed_edges(sys, plan.edges(), plan.time_weight, half,
                                                  prob.start))
     halves = [np.asarray(prob.start, dtype=np.float64)]
-    # the horizons tried: longer than the kept run's (`floor`), at most `cap`; `lo` the
-    # longest run resolved (the tail `kept`, its cost `bound`, its predicted cost `guess`:
-    # a run cut at the goal region costs less than predicted, so predictions are compared
-    # with predictions), `hi` the shortest run reached but not resolved (runs' lengths)
-    cap, floor, lo, hi, kept, bound, guess = cost.shape[1] - 1, 0, 0, None, None, best, best
+    # the horizons tried: longer than `lo`, at most `cap`; `lo` the longest horizon whose
+    # run was resolved (the tail `kept`, its cost `bound`, its predicted cost `guess`: a run
+    # cut at the goal region costs less than predicted, so predictions are compared with
+    # predictions), `hi` the shortest whose run reached the goal region but was not resolved
+    cap, lo, hi, kept, bound, guess = cost.shape[1] - 1, 0, None, None, best, best
     for _ in range(LQ_TRIES):
-        window = cost[:, floor + 1: cap + 1]
+        window = cost[:, lo + 1: cap + 1]
         a, j = np.unravel_index(int(np.argmin(window)), window.shape)
-        j += floor + 1
+        j += lo + 1
         if not cost[a, j] < guess:
             break
         out = lq.run(tree.states[path[a]], int(j), propagator.box, propagator.goal_mask,
@@ -132,16 +132,14 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
             halves.append(next(ends))
         y = propagate_controls(sys, halves[a], out.inputs, np.full(len(out.inputs), 2),
                                half)[-1]
-        steps = len(out.inputs)
         if end_gap(prob, out.states[-1], y) < prob.goal_tolerance:
-            kept, bound, guess = (int(a), out), total, cost[a, j]
-            floor, lo = int(j), max(lo, steps)
+            kept, bound, guess, lo = (int(a), out), total, cost[a, j], int(j)
             if hi is None:  # the cheapest prediction, resolved: nothing longer to try
                 break
         else:
-            hi = steps if hi is None else min(hi, steps)
+            hi = int(j) if hi is None else min(hi, int(j))
         cap = int(LQ_SHORTER * hi) if kept is None else (lo + hi) // 2
-        if cap <= floor:
+        if cap <= lo:
             break
     if kept is None:
         return None
