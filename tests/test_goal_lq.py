@@ -153,7 +153,8 @@ def _never_resolved(monkeypatch) -> list[int]:
         runs.append(a[1])
         return run(self, *a, **k)
     monkeypatch.setattr(goal_module.GoalLQ, "run", counted)
-    monkeypatch.setattr(goal_module, "end_gap", lambda *a: np.inf)
+    monkeypatch.setattr(goal_module, "state_gaps", lambda p, full, half: np.full(len(full),
+                                                                                 np.inf))
     return runs
 
 
@@ -182,8 +183,8 @@ def test_the_horizon_is_bisected_between_resolved_and_unresolved(system, monkeyp
         return out
     monkeypatch.setattr(goal_module.GoalLQ, "run", counted)
     longest = 120
-    monkeypatch.setattr(goal_module, "end_gap",
-                        lambda *a: 0.0 if lengths[-1] <= longest else np.inf)
+    monkeypatch.setattr(goal_module, "state_gaps", lambda p, full, half: np.full(
+        len(full), 0.0 if lengths[-1] <= longest else np.inf))
     got = goal_shortcuts(planner, plan)
     assert got.extra["shortcuts"]["lq_tail"] == 1
     first = next(i for i, n in enumerate(lengths) if n <= longest)
@@ -195,6 +196,23 @@ def test_the_horizon_is_bisected_between_resolved_and_unresolved(system, monkeyp
     assert max(n for n in lengths if n <= longest) > lengths[first]
     monkeypatch.setattr(goal_module, "LQ_TRIES", first + 1)  # stopped at the first resolved
     assert got.path_cost < goal_shortcuts(planner, plan).path_cost
+
+
+def test_a_tail_whose_half_step_replay_strays_midway_is_not_kept(system, monkeypatch):
+    """The chain is judged at each of its steps, not at its end alone: the half step's
+    replay moved away by twice the tolerance at one state in the middle (its end untouched)
+    is not resolved."""
+    planner, problem, plan = _random_plan(system)
+    real = goal_module.propagate_controls
+
+    def strays(*a, **k):
+        traj = real(*a, **k).copy()
+        traj[2 * (len(traj) // 4), 0] += 2 * problem.goal_tolerance  # a state at the step
+        return traj
+    monkeypatch.setattr(goal_module, "propagate_controls", strays)
+    assert goal_shortcuts(planner, plan).extra["shortcuts"]["lq_tail"] == 0
+    monkeypatch.setattr(goal_module, "propagate_controls", real)
+    assert goal_shortcuts(planner, plan).extra["shortcuts"]["lq_tail"] == 1
 
 
 def test_a_run_stops_trying_the_law_where_it_never_keeps_a_tail(system, monkeypatch):

@@ -256,12 +256,17 @@ def end_gap(problem, full: np.ndarray, half: np.ndarray) -> float:
     """`step_check`'s ``goal_gap`` of two ends of a path, replayed at the plan's step
     (``full``) and at half of it: the distance of their offsets from the goal as the goal
     test measures it (with a goal function the difference of its two distances)."""
-    ends = np.array([full, half], dtype=np.float64)
+    return float(state_gaps(problem, np.asarray(full)[None], np.asarray(half)[None])[0])
+
+
+def state_gaps(problem, full: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """(N,) `end_gap` of each pair of states (N, n) of one path at the plan's step
+    (``full``) and at half of it."""
+    full, half = np.asarray(full, dtype=np.float64), np.asarray(half, dtype=np.float64)
     if problem.goal_fn is None:
-        offsets = problem.goal_residual(ends)
-        return float(np.linalg.norm(offsets[0] - offsets[1]))
-    d = problem.goal_distance(ends)
-    return float(abs(d[0] - d[1]))
+        return np.linalg.norm(problem.goal_residual(full) - problem.goal_residual(half),
+                              axis=1)
+    return np.abs(problem.goal_distance(full) - problem.goal_distance(half))
 
 
 def step_check(problem, plan) -> dict:
