@@ -107,6 +107,8 @@ def test_the_compiled_run_is_the_time_varying_law(system):
             for i, x in enumerate(a.states[:-1])]
     np.testing.assert_allclose(a.inputs, want, rtol=0, atol=1e-12)
     assert np.abs(a.inputs).max() == pytest.approx(1.5)  # the box clipped some inputs
+    with pytest.raises(ValueError, match="at least one step"):
+        lq.run(X0, 0, box, never)
 
 
 def _random_plan(system, seed=0):

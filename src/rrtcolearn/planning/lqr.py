@@ -393,6 +393,8 @@ class GoalLQ:
         """The law of the horizon ``steps`` from ``x0`` on the system (its RK4 step; the
         step i's gain K_(steps - i)), cut at the first state in the goal region; ends as
         `GoalLQR.run`'s ("reached", "box", "obstacle", "timeout"), compiled likewise."""
+        if steps < 1:
+            raise ValueError(f"a horizon of at least one step, not {steps}")
         self.extend(steps)
         n = self.A.shape[0]
         order = slice(steps, 0, -1)

@@ -49,8 +49,8 @@ if TYPE_CHECKING:
     from rrtcolearn.planning.propagator import Propagator
     from rrtcolearn.planning.rrt import RRTCoLearn
 
-# the `GoalLQ` tail (`lq_tail`): at most this many runs per call; the first run the step
-# does not resolve caps the horizons tried at this share of its length, and once a run is
+# the `GoalLQ` tail (`lq_tail`): at most this many runs per call; a run the step does not
+# resolve caps the horizons tried at this share of its horizon, and once a run is
 # resolved the horizon is bisected between the longest resolved and the shortest unresolved
 LQ_TRIES, LQ_SHORTER = 8, 0.7
 # the calls of one anytime run try the law while they number fewer than this many times
@@ -74,7 +74,7 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
     gap `evaluate.step_check` measures at the path's end; the end alone is not enough: on
     sparse_rrt's cart-pole a 26-s run whose pole turns over once more at half the step ends
     0.8 from it, against a tolerance of 1.5). A run the step does not resolve caps the
-    horizons at `LQ_SHORTER` of its length until one is resolved; then the horizon is
+    horizons at `LQ_SHORTER` of its horizon until one is resolved; then the horizon is
     bisected between them (the cheapest resolved run kept); at most `LQ_TRIES` runs
     (compiled: `lqr.GoalLQ.run`); a planner whose calls
     keep no tail stops trying (`LQ_PATIENCE`; ``record``: [calls, calls that kept a
