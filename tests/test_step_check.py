@@ -144,3 +144,50 @@ def test_an_anytime_plan_replays_each_path_once(paper_model, monkeypatch):
     problem = pipeline.make_problem(paper_model.system, cfg, list(START), list(GOAL),
                                     TOLERANCE)
     assert p.extra["step_check"] == real(problem, p)
+
+
+def test_a_path_whose_replays_part_on_the_way_is_not_resolved():
+    """Judged at every node, not at the end alone: on x' = -a x + u at a step of a dt = 2.5
+    (RK4 stable, but far off), one step of u = a from 0 then a long rest at u = 0 ends at
+    about 0 at both steps, while the first node is 0.35 at the step and 0.91 at half of it.
+    The references: RK4 on a linear ODE is x -> x_e + R(-a h) (x - x_e) with
+    R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24, written here."""
+    import sympy
+
+    from rrtcolearn.planning.tree import Plan, PlannerData
+    from rrtcolearn.systems.symbolic import build_system
+
+    a, dt, rest = 50.0, 0.05, 40
+    x, u = sympy.symbols("x u", real=True)
+    system = build_system("stiff_decay", states=[x], inputs=[u], drift=[-a * x],
+                          input_matrix=[[1]], input_weight=[[1]], state_low=[-2.0],
+                          state_high=[2.0], angle_dims=[], description="x' = -50 x + u")
+
+    def R(z):
+        return 1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24
+
+    def held(x0, u0, h, steps):  # the hand RK4 of x' = -a x + u0
+        xe = u0 / a
+        return xe + R(-a * h) ** steps * (x0 - xe)
+
+    x1 = held(0.0, a, dt, 1)
+    x2 = held(x1, 0.0, dt, rest)
+    tree = PlannerData(np.zeros(1), system.n_params, n_inputs=1)
+    nan = np.full(1, np.nan)
+    tree.add(np.array([x1]), 0, nan, np.full(system.n_params, np.nan), dt,
+             (1.0 + 0.5 * a**2) * dt, np.array([[0.0], [x1]]), a, control=np.array([a]))
+    tree.add(np.array([x2]), 1, nan, np.full(system.n_params, np.nan), rest * dt,
+             rest * dt, np.array([[x1], [x2]]), 0.0, control=np.array([0.0]))
+    problem = PlanningProblem.create(system, [0.0], [0.0], 0.1)
+    plan = Plan("stiff_decay", np.zeros(1), np.zeros(1), 0.1, 1.0, dt, "exact", 0.0, 0.0, 1,
+                tree, [0, 1, 2])
+    check = step_check(problem, plan)
+    assert check["replays"]
+    half1 = held(0.0, a, dt / 2, 2)
+    assert check["goal_gap"] == pytest.approx(abs(x2 - held(half1, 0.0, dt / 2, 2 * rest)),
+                                              abs=1e-12) and check["goal_gap"] < 1e-6
+    assert check["node_gap"] == pytest.approx(abs(half1 - x1), rel=1e-9)
+    assert 0.5 < check["node_gap"]
+    assert check["resolved"] is False  # the end alone would say resolved
+    plan.extra["step_check"] = check
+    assert "a node on the way 0.55" in plan_summary(plan)["half_step_check"]

@@ -226,6 +226,11 @@ def replay(problem, plan, dt: float | None = None) -> dict:
     in the state constraints, free of obstacles at every step). ``reaches_goal`` needs all
     three: one check for every planner. ``dt``: the RK4 step to re-integrate at, a whole
     fraction of the plan's (default the plan's own; `step_check`)."""
+    return _replayed(problem, plan, dt)[0]
+
+
+def _replayed(problem, plan, dt: float | None = None) -> tuple[dict, np.ndarray]:
+    """`replay`'s figures and the state at the end of each edge (edges, n)."""
     system = problem.system
     step = float(plan.dt)
     dt = step if dt is None else float(dt)
@@ -235,6 +240,7 @@ def replay(problem, plan, dt: float | None = None) -> dict:
     x = np.asarray(problem.start, dtype=np.float64)
     cost = duration = max_u = 0.0
     valid = inputs_ok = True
+    ends = []
     for t in replayed_edges(system, plan.edges(), plan.time_weight, dt, x):
         max_u = max(max_u, float(np.abs(t.inputs).max()))
         inputs_ok &= bool(np.all((t.inputs >= low_u - 1e-9) & (t.inputs <= high_u + 1e-9)))
@@ -245,11 +251,13 @@ def replay(problem, plan, dt: float | None = None) -> dict:
         cost += t.cost
         duration += (len(t.states) - 1) * dt
         x = t.states[-1]
+        ends.append(x)
     gap = float(problem.goal_distance(x[None])[0])
-    return {"path_cost": cost, "path_duration": duration, "max_abs_u": max_u,
-            "final_goal_distance": gap, "final_state": x.tolist(), "inputs_in_box": inputs_ok,
-            "valid": valid, "reaches_goal": bool(plan.path_nodes) and valid and inputs_ok
-            and gap <= problem.goal_tolerance + 1e-9}
+    return ({"path_cost": cost, "path_duration": duration, "max_abs_u": max_u,
+             "final_goal_distance": gap, "final_state": x.tolist(), "inputs_in_box": inputs_ok,
+             "valid": valid, "reaches_goal": bool(plan.path_nodes) and valid and inputs_ok
+             and gap <= problem.goal_tolerance + 1e-9},
+            np.array(ends) if ends else np.empty((0, len(x))))
 
 
 def end_gap(problem, full: np.ndarray, half: np.ndarray) -> float:
@@ -278,7 +286,11 @@ def step_check(problem, plan) -> dict:
     from the goal; with a goal function the difference of its two distances);
     ``goal_distance``: the half step's end from the goal region; ``valid``: the half step's
     states finite, in the state constraints and free of obstacles; ``resolved``:
-    ``goal_gap`` below the goal tolerance; ``replays``: the replay at the plan's step ends
+    ``node_gap``: the largest such distance at the end of an edge (the path's nodes, the
+    end included); ``resolved``: ``node_gap`` below the goal tolerance (the end alone is not
+    enough: two replays can part by more than the goal region on the way and end close by
+    chance, as the inverted pole of sparse_rrt's cart-pole does, turning over once more at
+    half the step; docs/anytime.md); ``replays``: the replay at the plan's step ends
     on the path's last node at the path's cost (to `PLAN_CHECK_RTOL`), as every plan must.
 
     A path ends at its first state inside the goal region, on its edge, and a planner's
@@ -288,10 +300,11 @@ def step_check(problem, plan) -> dict:
     not resolved at all (a 65 s approach to an unstable upright, re-integrated at half its
     step, ended 6.4 from the goal against a tolerance of 1.5; docs/formats.md). Another
     seed, or a model fitted at a smaller ``generate.dt``, plans at a step that resolves it."""
-    full = replay(problem, plan)
-    half = replay(problem, plan, float(plan.dt) / 2.0)
+    full, nodes = _replayed(problem, plan)
+    half, half_nodes = _replayed(problem, plan, float(plan.dt) / 2.0)
     ends = np.array([full["final_state"], half["final_state"]])
     goal_gap = end_gap(problem, ends[0], ends[1])
+    node_gap = float(state_gaps(problem, nodes, half_nodes).max()) if len(nodes) else goal_gap
     # the replay at the plan's own step is the plan's path, edge for edge: else the plan
     # records edges that are not what it integrated (a bug, never a property of the problem)
     edges = plan.edges()
@@ -300,8 +313,9 @@ def step_check(problem, plan) -> dict:
         1.0, float(np.linalg.norm(end))) and abs(full["path_cost"] - plan.path_cost)
         <= PLAN_CHECK_RTOL * max(1.0, abs(plan.path_cost)))
     return {"gap": float(np.linalg.norm(ends[0] - ends[1])), "goal_gap": goal_gap,
-            "goal_distance": half["final_goal_distance"], "valid": bool(half["valid"]),
-            "resolved": bool(goal_gap < problem.goal_tolerance), "replays": replays}
+            "node_gap": node_gap, "goal_distance": half["final_goal_distance"],
+            "valid": bool(half["valid"]), "resolved": bool(node_gap < problem.goal_tolerance),
+            "replays": replays}
 
 
 def is_resolved(problem, plan) -> bool:

@@ -131,8 +131,10 @@ def step_summary(p: Plan) -> str:
     """`evaluate.step_check`'s figures in words: the path at half the plan's step."""
     c = p.extra["step_check"]
     tol = p.goal_tolerance
+    node_gap = c.get("node_gap", c["goal_gap"])  # (a plan file from before node gaps)
     where = (f"at dt/2 the end moves {c['goal_gap']:.2g} (goal tolerance {tol:.3g}) to "
              f"{c['goal_distance']:.3g} from the goal"
+             + (f", a node on the way {node_gap:.2g}" if node_gap > c["goal_gap"] else "")
              + ("" if c["valid"] else "; a state grazes an obstacle or a state bound"))
     if not c["replays"]:
         return (f"the plan does NOT re-simulate to its own path at its step: an internal "
