@@ -160,6 +160,36 @@ def test_propagate_draws_is_propagate_draw_by_draw(pendulum):
         assert begin == len(states) and stops.tolist() == [0, 1, 0]
 
 
+def test_propagate_controls_chains_each_control_from_the_last_state(pendulum):
+    """`propagate_controls` (one compiled call with the controls chained, or control by
+    control in numpy): each control held from where the one before ended, as `propagate`
+    integrates it, and a state outside the box ends the whole path there (kept as its last
+    row)."""
+    import dataclasses
+
+    from rrtcolearn.integrate import propagate, propagate_controls
+
+    x0 = np.array([-3.0, 0.2])
+    controls, steps = np.array([[1.3], [-0.5], [0.0], [3.0]]), np.array([30, 0, 20, 400])
+    high = np.array([np.inf, 1.0])
+    want, x = [x0[None]], x0
+    for u, k in zip(controls, steps, strict=True):  # the reference: control by control
+        traj = propagate(pendulum, x, u, 0.01, int(k), high=high)
+        want.append(traj[1:])
+        x = traj[-1]
+        if len(traj) < k + 1:
+            break
+    want = np.concatenate(want)
+    assert want[-1, 1] > 1.0 and len(want) < 1 + steps.sum()  # the box stopped it
+    for system in (pendulum, dataclasses.replace(pendulum, propagate_jit=None)):
+        got = propagate_controls(system, x0, controls, steps, 0.01, high=high)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+        free = propagate_controls(system, x0, controls[:3], steps[:3], 0.01)
+        assert free.shape == (51, 2)
+        np.testing.assert_allclose(free[31:], propagate(pendulum, free[30], controls[2], 0.01,
+                                                         20)[1:], rtol=0, atol=1e-12)
+
+
 def test_a_peer_edge_that_turns_invalid_ends_at_its_last_valid_state(pendulum):
     """A peer's path executed here: an edge that leaves the state constraints or enters an
     obstacle is kept up to its last valid state, with the duration and cost of those steps,

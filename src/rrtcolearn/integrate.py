@@ -159,12 +159,13 @@ def hold_jit(x0, u, length, dt, box, out, scratch):
 
 
 @_numba.njit(cache=True)
-def propagate_jit(x0, inputs, lengths, dt, low, high):
+def propagate_jit(x0, inputs, lengths, dt, low, high, chain):
     # RK4 of x' = f(x, u) from x0 under each constant input inputs[c] held for lengths[c]
     # steps, each draw stopping after its first state outside [low, high] or not finite
     # (that state included): the states after x0, draw after draw (total, n), how many
     # each draw has (c,), and how each stopped (c,): 0 inside throughout, 1 at a state
-    # outside, 2 at a state not finite
+    # outside, 2 at a state not finite. With chain, each draw starts where the one before
+    # it ended (piecewise-constant controls) and a stop ends them all
     n = x0.shape[0]
     c = inputs.shape[0]
     states = _np.empty((lengths.sum(), n))
@@ -177,10 +178,13 @@ def propagate_jit(x0, inputs, lengths, dt, low, high):
     tmp = _np.empty(n)
     r = 0
     for j in range(c):
-        kept, stops[j] = _hold(x0, inputs[j], lengths[j], dt, low, high, states, r, k1, k2,
-                               k3, k4, tmp)
+        start = states[r - 1] if chain and r > 0 else x0
+        kept, stops[j] = _hold(start, inputs[j], lengths[j], dt, low, high, states, r, k1,
+                               k2, k3, k4, tmp)
         counts[j] = kept + (1 if stops[j] > 0 else 0)
         r += counts[j]
+        if chain and stops[j] > 0:
+            break
     return states[:r], counts, stops
 
 
@@ -590,7 +594,7 @@ def propagate_draws(system, x0: np.ndarray, inputs: np.ndarray, lengths: np.ndar
     inputs = np.ascontiguousarray(inputs, dtype=np.float64)
     lengths = np.ascontiguousarray(lengths, dtype=np.int64)
     if system.propagate_jit is not None:
-        return system.propagate_jit(x0, inputs, lengths, float(dt), low, high)
+        return system.propagate_jit(x0, inputs, lengths, float(dt), low, high, False)
     n, parts = len(x0), []  # a System built by hand, without compiled kernels
     counts, stops = np.zeros(len(inputs), np.int64), np.zeros(len(inputs), np.int64)
     for c, (u, steps) in enumerate(zip(inputs, lengths, strict=True)):
@@ -630,10 +634,21 @@ def propagate_controls(system, x0: np.ndarray, controls: np.ndarray, steps: np.n
     n) at every step, or fewer when ``low``/``high`` stop it (the first state outside them
     is the last row). Every peer's path is executed and re-simulated with this."""
     controls = np.asarray(controls, dtype=np.float64).reshape(len(steps), -1)
+    if system.propagate_jit is not None:  # one compiled call, the controls chained
+        x0 = np.ascontiguousarray(x0, dtype=np.float64)
+        n = len(x0)
+        lo = np.full(n, -np.inf) if low is None else np.ascontiguousarray(low, dtype=np.float64)
+        hi = np.full(n, np.inf) if high is None else np.ascontiguousarray(high, dtype=np.float64)
+        states = system.propagate_jit(x0, np.ascontiguousarray(controls),
+                                      np.ascontiguousarray(steps, dtype=np.int64), float(dt),
+                                      lo, hi, True)[0]
+        return np.concatenate([x0[None], states])
     parts = [np.asarray(x0, dtype=np.float64)[None]]
+    x = parts[0][0]
     for u, k in zip(controls, steps, strict=True):
-        traj = propagate(system, parts[-1][-1], u, dt, int(k), low, high)
+        traj = propagate(system, x, u, dt, int(k), low, high)
         parts.append(traj[1:])
+        x = traj[-1]
         if len(traj) < int(k) + 1:
             break
     return np.concatenate(parts)
