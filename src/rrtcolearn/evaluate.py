@@ -260,16 +260,11 @@ def _replayed(problem, plan, dt: float | None = None) -> tuple[dict, np.ndarray]
             np.array(ends) if ends else np.empty((0, len(x))))
 
 
-def end_gap(problem, full: np.ndarray, half: np.ndarray) -> float:
-    """`step_check`'s ``goal_gap`` of two ends of a path, replayed at the plan's step
-    (``full``) and at half of it: the distance of their offsets from the goal as the goal
-    test measures it (with a goal function the difference of its two distances)."""
-    return float(state_gaps(problem, np.asarray(full)[None], np.asarray(half)[None])[0])
-
-
 def state_gaps(problem, full: np.ndarray, half: np.ndarray) -> np.ndarray:
-    """(N,) `end_gap` of each pair of states (N, n) of one path at the plan's step
-    (``full``) and at half of it."""
+    """(N,) the gaps `step_check` measures between pairs of states (N, n) of one path,
+    replayed at the plan's step (``full``) and at half of it: the distance of their offsets
+    from the goal as the goal test measures it (with a goal function the difference of
+    their two distances)."""
     full, half = np.asarray(full, dtype=np.float64), np.asarray(half, dtype=np.float64)
     if problem.goal_fn is None:
         return np.linalg.norm(problem.goal_residual(full) - problem.goal_residual(half),
@@ -303,8 +298,8 @@ def step_check(problem, plan) -> dict:
     full, nodes = _replayed(problem, plan)
     half, half_nodes = _replayed(problem, plan, float(plan.dt) / 2.0)
     ends = np.array([full["final_state"], half["final_state"]])
-    goal_gap = end_gap(problem, ends[0], ends[1])
-    node_gap = float(state_gaps(problem, nodes, half_nodes).max()) if len(nodes) else goal_gap
+    # (a path without an edge: both ends the start, no gap)
+    gaps = state_gaps(problem, nodes, half_nodes) if len(nodes) else np.zeros(1)
     # the replay at the plan's own step is the plan's path, edge for edge: else the plan
     # records edges that are not what it integrated (a bug, never a property of the problem)
     edges = plan.edges()
@@ -312,7 +307,8 @@ def step_check(problem, plan) -> dict:
     replays = bool(np.linalg.norm(ends[0] - end) <= PLAN_CHECK_RTOL * max(
         1.0, float(np.linalg.norm(end))) and abs(full["path_cost"] - plan.path_cost)
         <= PLAN_CHECK_RTOL * max(1.0, abs(plan.path_cost)))
-    return {"gap": float(np.linalg.norm(ends[0] - ends[1])), "goal_gap": goal_gap,
+    node_gap = float(gaps.max())
+    return {"gap": float(np.linalg.norm(ends[0] - ends[1])), "goal_gap": float(gaps[-1]),
             "node_gap": node_gap, "goal_distance": half["final_goal_distance"],
             "valid": bool(half["valid"]), "resolved": bool(node_gap < problem.goal_tolerance),
             "replays": replays}
