@@ -378,15 +378,17 @@ class GoalLQ:
             self.k.append(k)
 
     def predicted(self, x0: np.ndarray, steps: int) -> np.ndarray:
-        """(steps + 1,) the linear model's cost from ``x0`` into the equilibrium in j = 0 ..
-        ``steps`` steps (j = 0: inf)."""
+        """(steps + 1,) the linear model's cost from ``x0`` (n,) into the equilibrium in
+        j = 0 .. ``steps`` steps (j = 0: inf); for states (N, n) one row each, (N, steps + 1)
+        (the quadratic forms of every state and horizon as one matrix product)."""
         self.extend(steps)
-        e = self.lqr.offset(x0)[0]
-        P = np.asarray(self.P[: steps + 1])
-        out = 0.5 * np.einsum("i,jik,k->j", e, P, e) + np.asarray(self.p[: steps + 1]) @ e \
+        e = self.lqr.offset(x0)
+        ee = (e[:, :, None] * e[:, None, :]).reshape(len(e), -1)  # e e' of each state, flat
+        P = np.asarray(self.P[: steps + 1]).reshape(steps + 1, -1)
+        out = 0.5 * ee @ P.T + e @ np.asarray(self.p[: steps + 1]).T \
             + np.asarray(self.c[: steps + 1])
-        out[0] = np.inf
-        return out
+        out[:, 0] = np.inf
+        return out[0] if np.ndim(x0) == 1 else out
 
     def run(self, x0: np.ndarray, steps: int, box: tuple[np.ndarray, np.ndarray],
             goal_mask, validity=None) -> LQRTry:

@@ -93,16 +93,10 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
     tree = plan.tree
     come = costs_to_come(tree, path)[:-1]  # (not the goal node: nothing to replace there)
     xs = tree.states[path[:-1]]
-    e = lqr.offset(xs)
-    ee = (e[:, :, None] * e[:, None, :]).reshape(len(e), -1)  # e e' of each node, flat
     n = max(1, round(lqr.horizon / dt))
     limit = best / (w * dt)
     while True:  # horizons doubled while the least predicted cost is at the longest
-        lq.extend(n)
-        P = np.asarray(lq.P[: n + 1]).reshape(n + 1, -1)  # (the quadratic form: a product)
-        cost = (0.5 * ee @ P.T + e @ np.asarray(lq.p[: n + 1]).T
-                + np.asarray(lq.c[: n + 1])) + come[:, None]
-        cost[:, 0] = np.inf
+        cost = lq.predicted(xs, n) + come[:, None]
         a, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
         limit = min(limit, (cost[a, j] - come.min()) / (w * dt))
         longer = int(min(limit, 2 * n))
@@ -127,9 +121,7 @@ def lq_tail(propagator: Propagator, lqr, plan: Plan, path: list[int], best: floa
             break
         out = lq.run(tree.states[path[a]], int(j), propagator.box, propagator.goal_mask,
                      prob.validity if prob.validity else None)
-        us = out.inputs  # its cost: the held inputs' running cost w + u'Ru/2, summed
-        total = come[a] + dt * (w * len(us) + 0.5 * float(np.einsum(
-            "ij,jk,ik->", us, propagator.input_weight, us)))
+        total = come[a] + sum(propagator.hold_rate(u) * dt for u in out.inputs)
         if not out.reached or total >= bound:
             cost[a] = np.inf
             continue
