@@ -270,3 +270,75 @@ def test_the_automatic_funnel_switches_on_with_shooting_and_not_while_exploring(
                            can_connect=True)
         assert "funnel" not in s.connections_due(
             Progress(1.0, since_nearer=CONNECT_AFTER), on)
+
+
+def test_without_an_lqr_connection_shooting_and_the_funnel_switch_on_while_exploring():
+    """Where no LQR connection reaches the goal region, nothing but shooting and the funnel
+    connects: they switch on when the tree stalls even while random controls explore."""
+    from rrtcolearn.planning.contracts import Progress
+    from rrtcolearn.planning.schedule import CONNECT_AFTER, Schedule
+    from rrtcolearn.planning.settings import PlannerSettings
+
+    on = {"shooting": None, "funnel": None, "lqr": None}
+    for goal_lqr, want in ((True, ["lqr"]), (False, ["lqr", "shooting", "funnel"])):
+        s = Schedule.start(PlannerSettings(), controls=True, learned=True, can_connect=True,
+                           goal_lqr=goal_lqr)
+        s.exploring = True
+        assert s.connections_due(Progress(1.0, iterations=8, since_nearer=CONNECT_AFTER),
+                                 on) == want
+    # shooting set off stays off
+    s = Schedule.start(PlannerSettings(goal_connect=False), controls=True, learned=True,
+                       can_connect=True, goal_lqr=False)
+    s.exploring = True
+    assert "shooting" not in s.connections_due(Progress(1.0, since_nearer=CONNECT_AFTER), on)
+
+
+def test_a_derived_funnel_runs_to_the_box_where_the_goal_has_no_lqr_connection(limited):
+    """Into a goal that is no equilibrium under |u| <= 1 (the pendulum held 1 rad from upright needs
+    a torque of about 8) the planner has no LQR connection; its derived goal funnel then
+    runs each extremal for up to generate.max_duration with no cost bound, and its states
+    lie farther from the goal in time than the data's longest extremal. A funnel duration
+    the user gives is kept; a goal with an LQR connection keeps the data's funnel."""
+    from dataclasses import replace
+
+    from rrtcolearn.planning.settings import PlannerSettings
+
+    model = limited
+    cfg = model.config
+    settings = model.planner_settings(cfg)
+    # the fit recorded the derived duration; the planner derives it again (None here)
+    assert cfg.plan.funnel_duration == model.max_duration
+    assert "plan.funnel_duration" in cfg.derived and settings.funnel_duration is None
+    given = cfg.model_copy(update={"plan": cfg.plan.model_copy(update={
+        "funnel_duration": 1.25})})
+    assert model.planner_settings(given).funnel_duration == 1.25
+
+    def planner(goal, s):
+        problem = pipeline.make_problem(model.system, cfg, [-np.pi, 0.0], goal, 0.05)
+        return RRTCoLearn(problem, model.functions, s)
+
+    held = planner([0.0, 0.0], settings)
+    assert held.goal_lqr_off is None
+    assert held.funnel_reach == (model.max_duration, cfg.generate.max_cost)
+    off = planner([-1.0, 0.0], settings)
+    assert off.goal_lqr_off is not None and "equilibrium" in off.goal_lqr_off
+    assert off.funnel_reach == (cfg.generate.max_duration, np.inf)
+    assert planner([-1.0, 0.0], replace(settings, funnel_duration=1.25)).funnel_reach == \
+        (1.25, cfg.generate.max_cost)
+    # turning the connection off is no goal without one: the data's funnel
+    assert planner([0.0, 0.0], replace(settings, goal_lqr=False)).funnel_reach == \
+        held.funnel_reach
+    assert PlannerSettings.from_config(cfg, max_duration=2 * model.max_duration
+                                       ).funnel_duration == model.max_duration
+    # the funnel itself: extremals longer than the data's, stopped only by the box
+    funnel = off.connection("funnel", off.funnel_stream(0), off.start(
+        np.random.default_rng(0), 0).tree, 300)
+    part = funnel.parts[0]
+    assert funnel.duration == cfg.generate.max_duration
+    assert funnel.report()["funnel_duration"] == funnel.duration
+    assert "funnel_duration" not in held.connection("funnel", held.funnel_stream(0), held.start(
+        np.random.default_rng(0), 0).tree, 300).report()
+    assert part.steps.max() * part.dt > 1.5 * model.max_duration
+    narrow = held.connection("funnel", held.funnel_stream(0), held.start(
+        np.random.default_rng(0), 0).tree, 300)
+    assert narrow.parts[0].steps.max() * narrow.parts[0].dt <= model.max_duration + 1e-9

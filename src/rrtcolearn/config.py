@@ -389,7 +389,9 @@ class PlanConfig(_Section):
     funnel_duration: float | None = Field(
         None, gt=0, le=1000, description="the funnel's extremals are integrated for at most this "
         "long (s); their cost is bounded by generate.max_cost; none: the data's longest "
-        "extremal (generate.max_duration as fitted), as long as U and J know them")
+        "extremal (generate.max_duration as fitted), as long as U and J know them, or where "
+        "the goal has no LQR connection until they leave the state box, for at most "
+        "generate.max_duration, with no cost bound")
     funnel_min_duration: float = Field(
         0.0, ge=0, le=100, description="funnel states less than this time (s) from the goal "
         "are dropped (where the boundary value problem from near them is ill-conditioned)")

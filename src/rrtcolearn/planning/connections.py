@@ -319,20 +319,24 @@ class FunnelConnection:
         self.idle = 0
         self.grown = 0
         self.allowance = Allowance()
+        self.duration = propagator.settings.funnel_duration  # the extremals' longest
 
     @classmethod
     def build(cls, propagator: Propagator, rng: np.random.Generator, weight: np.ndarray,
-              n_simulations: int, limit: int = 0, grow_after: int = 0) -> FunnelConnection:
+              n_simulations: int, limit: int = 0, grow_after: int = 0,
+              reach: tuple[float, float] | None = None) -> FunnelConnection:
         """The connection along a goal funnel of ``n_simulations`` extremals (drawn from
         ``rng``; built inside the timed region: its CPU time counts as planning time); with
         ``limit`` > ``n_simulations`` a funnel that doubles (more extremals from ``rng``) up
         to ``limit`` extremals each time ``grow_after`` calls in a row found no tree node
-        within its radius to start from."""
+        within its radius to start from. ``reach``: the extremals' longest duration and
+        cost bound (by default ``funnel_duration`` and ``funnel_max_cost``)."""
         prob, s = propagator.problem, propagator.settings
+        duration, max_cost = reach or (s.funnel_duration, s.funnel_max_cost)
         more = partial(
             GoalFunnel.build, prob.system, prob.goal, prob.goal_offset, rng,
-            time_weight=s.time_weight, dt=s.dt, max_duration=s.funnel_duration,
-            max_cost=s.funnel_max_cost, scale=weight,
+            time_weight=s.time_weight, dt=s.dt, max_duration=duration,
+            max_cost=max_cost, scale=weight,
             # the funnel drops its states within this plain distance of the goal; a goal
             # region's tolerance is in its own units, so there every state is kept
             tolerance=prob.goal_tolerance if prob.goal_fn is None and
@@ -341,6 +345,7 @@ class FunnelConnection:
         connection = cls(propagator, more(n_simulations=n_simulations), more, limit,
                          grow_after)
         connection.simulations = n_simulations  # drawn (a draw may give no costate)
+        connection.duration = float(duration)
         return connection
 
     def grow(self) -> None:
@@ -489,7 +494,7 @@ class FunnelConnection:
         lam, z0 = self._lam, self._z0
         offset = prob.goal_offset(x0)[0]
         # the node may be farther from the goal than the funnel state it starts from
-        longest = FUNNEL_STRETCH * s.funnel_duration
+        longest = FUNNEL_STRETCH * self.duration
         for q in range(FUNNEL_POINTS):
             if not dist[q] <= radius:
                 break
@@ -551,8 +556,11 @@ class FunnelConnection:
         return None
 
     def report(self) -> dict:
+        longer = self.duration != self.propagator.settings.funnel_duration
         return {"funnel_states": sum(len(part) for part in self.parts),
-                **({"funnel_grown": self.grown} if self.grown else {})}
+                **({"funnel_grown": self.grown} if self.grown else {}),
+                # the derived horizon where the goal admits no LQR connection (`rrt`)
+                **({"funnel_duration": self.duration} if longer else {})}
 
     def note(self) -> str | None:
         return None

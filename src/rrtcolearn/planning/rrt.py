@@ -102,7 +102,8 @@ class RRTCoLearn:
         self.problem = problem
         self.model = model
         sys = problem.system
-        self.settings = (settings or PlannerSettings()).resolved(sys)
+        given = settings or PlannerSettings()
+        self.settings = given.resolved(sys)
         explicit = self.settings.goal_connect is True or bool(self.settings.goal_funnel)
         if explicit and sys.params_from_costate is None:
             raise ConfigError(f"system {sys.name!r} has no params_from_costate: the goal "
@@ -121,6 +122,21 @@ class RRTCoLearn:
         self.controls = None if self.propagator.control_box is None else \
             RandomControls(self.propagator)
         self.extra_connections = tuple(connections)
+        # why the goal admits no LQR connection (None: it does). Where it admits none (a
+        # unicycle at rest: its linearisation is not stabilisable) only shooting and the
+        # funnel can connect, so they switch on even while random controls explore
+        # (`schedule`), and a derived funnel runs each extremal until it leaves the state
+        # box, for at most ``generate.max_duration``, whatever the data's cost bound: near
+        # such a goal the states one short extremal reaches are a thin set, and the tree
+        # must meet one from where it stalls (dynobench's second-order unicycle,
+        # docs/dynobench.md). Turning the connection off (plan.goal_lqr false) changes
+        # neither. (Asked only where shooting and the funnel can run.)
+        s = self.settings
+        self.goal_lqr_off = LQRConnection(self.propagator).off \
+            if model is not None and sys.params_from_costate is not None else None
+        self.funnel_reach = (s.duration_cap, np.inf) \
+            if self.goal_lqr_off is not None and given.funnel_duration is None \
+            else (s.funnel_duration, s.funnel_max_cost)
         # the goal funnel of the last query solved: its key and its stream (`funnel_stream`)
         self._funnel: tuple[tuple, FunnelStream] | None = None
         # what the improvements of the current run of a query record for their later calls
@@ -258,7 +274,8 @@ class RRTCoLearn:
         can_connect = sys.params_from_costate is not None and self.model is not None
         schedule = Schedule.start(s, controls=self.controls is not None
                                   and s.control_edges is not False,
-                                  learned=self.model is not None, can_connect=can_connect)
+                                  learned=self.model is not None, can_connect=can_connect,
+                                  goal_lqr=self.goal_lqr_off is None)
         funnel = FunnelStream(rng) if query is None else self.funnel_stream(query)
         on: dict[str, Connection | None] = {"shooting": None, "funnel": None, "lqr": None}
         for name, value in Schedule.initial(s).items():
@@ -299,9 +316,10 @@ class RRTCoLearn:
             if size is None:
                 return FunnelConnection.build(self.propagator, funnel.draws(), tree.weight,
                                               FUNNEL_START, limit=AUTO_FUNNEL,
-                                              grow_after=CONNECT_AFTER)
+                                              grow_after=CONNECT_AFTER,
+                                              reach=self.funnel_reach)
             return FunnelConnection.build(self.propagator, funnel.draws(), tree.weight,
-                                          int(size))
+                                          int(size), reach=self.funnel_reach)
         return LQRConnection(self.propagator)
 
     def _connect(self, run: Solve) -> bool:

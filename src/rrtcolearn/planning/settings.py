@@ -42,6 +42,8 @@ class PlannerSettings:
         given too).
     max_resample : steering draws per candidate when a draw gives no costate.
     funnel_max_cost : the funnel's extremals end at this cost (``generate.max_cost``).
+    duration_cap : the configured bound on an extremal's duration (``generate.max_duration``):
+        the goal funnel's horizon where the goal has no LQR connection (`rrt.RRTCoLearn`).
     """
 
     # the problem, the data and the edges' checks (`propagator`)
@@ -86,6 +88,7 @@ class PlannerSettings:
     funnel_duration: float | None = _default(PlanConfig, "funnel_duration")
     funnel_min_duration: float = _default(PlanConfig, "funnel_min_duration")
     funnel_max_cost: float = np.inf
+    duration_cap: float = _default(GenerateConfig, "max_duration")
     goal_lqr: bool | None = _default(PlanConfig, "goal_lqr")
 
     @classmethod
@@ -97,7 +100,13 @@ class PlannerSettings:
         g = config.generate
         own = {"time_weight": config.system.time_weight, "dt": g.dt,
                "max_duration": g.max_duration, "data_reach": g.max_state_distance,
-               "funnel_max_cost": np.inf if g.max_cost is None else g.max_cost}
+               "funnel_max_cost": np.inf if g.max_cost is None else g.max_cost,
+               "duration_cap": g.max_duration}
+        if "plan.funnel_duration" in config.derived and \
+                plan["funnel_duration"] == data.get("max_duration"):
+            # the value a fit recorded as derived from its data: derived again here, where
+            # the problem is known (`rrt.RRTCoLearn`: a goal without an LQR connection)
+            plan["funnel_duration"] = None
         return cls(**{**own, **plan, **data})
 
     def resolved(self, system: System) -> PlannerSettings:
