@@ -334,11 +334,12 @@ def test_a_derived_funnel_runs_to_the_box_where_the_goal_has_no_lqr_connection(l
     funnel = off.connection("funnel", off.funnel_stream(0), off.start(
         np.random.default_rng(0), 0).tree, 300)
     part = funnel.parts[0]
-    assert funnel.duration == cfg.generate.max_duration
+    assert funnel.duration == cfg.generate.max_duration and funnel.own
     assert funnel.report()["funnel_duration"] == funnel.duration
     assert "funnel_duration" not in held.connection("funnel", held.funnel_stream(0), held.start(
         np.random.default_rng(0), 0).tree, 300).report()
     assert part.steps.max() * part.dt > 1.5 * model.max_duration
     narrow = held.connection("funnel", held.funnel_stream(0), held.start(
         np.random.default_rng(0), 0).tree, 300)
+    assert not narrow.own  # (the chain along a funnel state's own extremal: not tried here)
     assert narrow.parts[0].steps.max() * narrow.parts[0].dt <= model.max_duration + 1e-9

@@ -320,17 +320,21 @@ class FunnelConnection:
         self.grown = 0
         self.allowance = Allowance()
         self.duration = propagator.settings.funnel_duration  # the extremals' longest
+        self.own = False  # `steer_from`'s fallback along the funnel state's own extremal
 
     @classmethod
     def build(cls, propagator: Propagator, rng: np.random.Generator, weight: np.ndarray,
               n_simulations: int, limit: int = 0, grow_after: int = 0,
-              reach: tuple[float, float] | None = None) -> FunnelConnection:
+              reach: tuple[float, float] | None = None, own: bool = False
+              ) -> FunnelConnection:
         """The connection along a goal funnel of ``n_simulations`` extremals (drawn from
         ``rng``; built inside the timed region: its CPU time counts as planning time); with
         ``limit`` > ``n_simulations`` a funnel that doubles (more extremals from ``rng``) up
         to ``limit`` extremals each time ``grow_after`` calls in a row found no tree node
         within its radius to start from. ``reach``: the extremals' longest duration and
-        cost bound (by default ``funnel_duration`` and ``funnel_max_cost``)."""
+        cost bound (by default ``funnel_duration`` and ``funnel_max_cost``). ``own``: where
+        a node's continuation fails, try the chain along its funnel state's own extremal
+        (`steer_from`)."""
         prob, s = propagator.problem, propagator.settings
         duration, max_cost = reach or (s.funnel_duration, s.funnel_max_cost)
         more = partial(
@@ -345,7 +349,7 @@ class FunnelConnection:
         connection = cls(propagator, more(n_simulations=n_simulations), more, limit,
                          grow_after)
         connection.simulations = n_simulations  # drawn (a draw may give no costate)
-        connection.duration = float(duration)
+        connection.duration, connection.own = float(duration), own
         return connection
 
     def grow(self) -> None:
@@ -418,7 +422,8 @@ class FunnelConnection:
         for node in dict.fromkeys((cheapest, nearest)):
             self.tried[node] = True
             chain = self.steer_from(tree.data.states[node], self.dist[node],
-                                    self.index[node], self.propagator.settings.funnel_radius)
+                                    self.index[node], self.propagator.settings.funnel_radius,
+                                    self.own)
             if chain is not None:
                 return node, chain
         return None

@@ -313,13 +313,17 @@ class RRTCoLearn:
         if name == "shooting":
             return ShootingConnection(self.propagator, self.model)
         if name == "funnel":
+            # where the goal admits no LQR connection the funnel is the only way in: where a
+            # continuation fails, the chain along the funnel state's own extremal is tried
+            # too (dynobench's second-order unicycle: parking 6/10 -> 9/10, docs/dynobench.md)
+            own = self.goal_lqr_off is not None
             if size is None:
                 return FunnelConnection.build(self.propagator, funnel.draws(), tree.weight,
                                               FUNNEL_START, limit=AUTO_FUNNEL,
                                               grow_after=CONNECT_AFTER,
-                                              reach=self.funnel_reach)
+                                              reach=self.funnel_reach, own=own)
             return FunnelConnection.build(self.propagator, funnel.draws(), tree.weight,
-                                          int(size), reach=self.funnel_reach)
+                                          int(size), reach=self.funnel_reach, own=own)
         return LQRConnection(self.propagator)
 
     def _connect(self, run: Solve) -> bool:
