@@ -61,7 +61,8 @@ def _dear_plan(system, problem, stream: FunnelStream | None):
     of a planner) and a solved plan whose path is one held-input edge costing 10^6."""
     settings = PlannerSettings(dt=DT, funnel_duration=DURATION, funnel_max_cost=500.0)
     planner = types.SimpleNamespace(problem=problem, propagator=Propagator(problem, settings),
-                                    settings=settings, query_funnel=lambda: stream)
+                                    settings=settings, query_funnel=lambda: stream,
+                                    funnel_reach=(DURATION, 500.0))
     tree = PlannerData(START, system.n_params, n_inputs=system.n_inputs)
     dear = Edge(np.vstack([START, START + 0.01]), 1, 1e6, 0.0, True, control=np.zeros(1))
     node = add_edge(tree, 0, dear, DT)

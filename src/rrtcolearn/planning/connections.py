@@ -297,7 +297,7 @@ class FunnelConnection:
 
     def __init__(self, propagator: Propagator, funnel: GoalFunnel,
                  more: Callable[[int], GoalFunnel] | None = None, limit: int = 0,
-                 grow_after: int = 0):
+                 grow_after: int = 0, duration: float | None = None, own: bool = False):
         self.propagator, self.funnel = propagator, funnel
         # the funnel's parts (``funnel``, the first, then each growth's), each with its own
         # index, and the first (global) index of each part's states
@@ -319,8 +319,11 @@ class FunnelConnection:
         self.idle = 0
         self.grown = 0
         self.allowance = Allowance()
-        self.duration = propagator.settings.funnel_duration  # the extremals' longest
-        self.own = False  # `steer_from`'s fallback along the funnel state's own extremal
+        # the extremals' longest duration (by default ``funnel_duration``), and whether
+        # `connect` falls back on the chain along a funnel state's own extremal
+        self.duration = propagator.settings.funnel_duration if duration is None else \
+            float(duration)
+        self.own = own
 
     @classmethod
     def build(cls, propagator: Propagator, rng: np.random.Generator, weight: np.ndarray,
@@ -347,9 +350,8 @@ class FunnelConnection:
             prob.goal_weights is None else 0.0,
             min_duration=s.funnel_min_duration, box=(prob.state_low, prob.state_high))
         connection = cls(propagator, more(n_simulations=n_simulations), more, limit,
-                         grow_after)
+                         grow_after, duration, own)
         connection.simulations = n_simulations  # drawn (a draw may give no costate)
-        connection.duration, connection.own = float(duration), own
         return connection
 
     def grow(self) -> None:

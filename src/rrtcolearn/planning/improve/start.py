@@ -62,8 +62,8 @@ def start_funnel(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | Non
             continue
         tried = float(dist[j])
         record["tries"] += 1
-        chain = FunnelConnection(prop, funnel).steer_from(x0, dist[j : j + 1],
-                                                          np.array([j]), radius, own=True)
+        chain = FunnelConnection(prop, funnel, duration=planner.funnel_reach[0]).steer_from(
+            x0, dist[j : j + 1], np.array([j]), radius, own=True)
         cost = np.inf if chain is None else float(sum(e.cost for e in chain))
         if cost < best - 1e-9:
             best, found = cost, chain
