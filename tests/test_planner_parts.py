@@ -343,3 +343,30 @@ def test_a_derived_funnel_runs_to_the_box_where_the_goal_has_no_lqr_connection(l
         np.random.default_rng(0), 0).tree, 300)
     assert not narrow.own  # (the chain along a funnel state's own extremal: not tried here)
     assert narrow.parts[0].steps.max() * narrow.parts[0].dt <= model.max_duration + 1e-9
+
+
+def test_into_a_goal_without_an_lqr_connection_the_funnel_connects_and_resimulates(limited):
+    """The pendulum at |u| <= 1 into 1 rad from upright at rest (no equilibrium: no LQR
+    connection): with random controls exploring, shooting and the funnel switch on when the
+    tree stalls, and a path through the funnel re-simulates by an independent RK4 into the
+    goal ball, its extremals on H* = 0 under the saturated input."""
+    goal = np.array([-1.0, 0.0])
+    problem = pipeline.make_problem(limited.system, limited.config, [-np.pi, 0.0], goal, 0.05)
+    planner = RRTCoLearn(problem, limited.functions, limited.planner_settings(limited.config))
+    through = []
+    for seed in range(6):
+        p = planner.solve(TerminationCondition(None, 3000), seed)
+        switched = p.extra["connections_switched_on"]
+        if "funnel" in switched:
+            # switched on while random controls explored (they switch on first)
+            assert switched["funnel"] >= switched["controls"] and "shooting" in switched
+            assert p.extra["funnel_duration"] == limited.config.generate.max_duration
+        if p.solved and p.extra.get("connection") in ("funnel", "shooting"):
+            through.append(p)
+    assert through, "no path connected through shooting or the funnel"
+    for p in through:
+        d = p.to_dict()
+        check_plan_file(d)
+        states, _, _ = pendulum_edge(d["path"][-1], d["time_weight"], d["dt"], U_MAX)
+        ang = np.mod(states[-1, 0] - goal[0] + np.pi, 2 * np.pi) - np.pi
+        assert np.hypot(ang, states[-1, 1]) <= 0.05 + 1e-9
