@@ -588,9 +588,9 @@ class LQRConnection:
 
     name = "lqr"
 
-    def __init__(self, propagator: Propagator):
+    def __init__(self, propagator: Propagator, built: GoalLQR | str | None = None):
         self.propagator = propagator
-        built = goal_lqr(propagator)
+        built = goal_lqr(propagator) if built is None else built
         self.lqr, self.off = (None, built) if isinstance(built, str) else (built, None)
         # per tree node its Lyapunov value (rows filled up to `queried`) and whether the
         # connection has started from it; `tries` counts the closed loops run

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -23,6 +24,7 @@ from rrtcolearn.planning.connections import (
     LQRConnection,
     ShootingConnection,
     cheaper_goal_edge,
+    goal_lqr,
 )
 from rrtcolearn.planning.contracts import (
     OUTCOMES,
@@ -36,6 +38,7 @@ from rrtcolearn.planning.controls import BATCH_ITERATIONS, RandomControls
 from rrtcolearn.planning.diagnosis import diagnose
 from rrtcolearn.planning.funnel import FunnelStream
 from rrtcolearn.planning.learned import LearnedSteering
+from rrtcolearn.planning.lqr import GoalLQR
 from rrtcolearn.planning.nearest import NodeIndex
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.propagator import Propagator
@@ -132,8 +135,9 @@ class RRTCoLearn:
         # docs/dynobench.md). Turning the connection off (plan.goal_lqr false) changes
         # neither. (Asked only where shooting and the funnel can run.)
         s = self.settings
-        self.goal_lqr_off = LQRConnection(self.propagator).off \
-            if model is not None and sys.params_from_costate is not None else None
+        loop = self.goal_loop if model is not None and sys.params_from_costate is not None \
+            else None
+        self.goal_lqr_off = loop if isinstance(loop, str) else None
         self.funnel_reach = (s.duration_cap, np.inf) \
             if self.goal_lqr_off is not None and given.funnel_duration is None \
             else (s.funnel_duration, s.funnel_max_cost)
@@ -324,7 +328,14 @@ class RRTCoLearn:
                                               reach=self.funnel_reach, own=own)
             return FunnelConnection.build(self.propagator, funnel.draws(), tree.weight,
                                           int(size), reach=self.funnel_reach, own=own)
-        return LQRConnection(self.propagator)
+        return LQRConnection(self.propagator, self.goal_loop)
+
+    @cached_property
+    def goal_loop(self) -> GoalLQR | str:
+        """The LQR loop about the goal's equilibrium, or why there is none
+        (`connections.goal_lqr`), built once per planner: each solve's LQR connection and
+        the improvements' LQR tails use it."""
+        return goal_lqr(self.propagator)
 
     def _connect(self, run: Solve) -> bool:
         """A goal-biased iteration's connections, each on tried in turn (those the schedule

@@ -38,7 +38,7 @@ import numpy as np
 
 from rrtcolearn.evaluate import replayed_edges, state_gaps
 from rrtcolearn.integrate import propagate_controls
-from rrtcolearn.planning.connections import goal_lqr, held_chain, lqr_chain, shoot_edge
+from rrtcolearn.planning.connections import held_chain, lqr_chain, shoot_edge
 from rrtcolearn.planning.contracts import Edge
 from rrtcolearn.planning.improve.common import costs_to_come, grafted, recorded
 from rrtcolearn.planning.learned import goal_query
@@ -165,7 +165,7 @@ def goal_shortcuts(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | N
     lam, z0 = np.empty(n), np.empty(2 * n + 1)
     # the LQR connection's loop, where the settings allow it and the goal has an equilibrium
     prop = planner.propagator
-    lqr = goal_lqr(prop) if s.goal_lqr is not False else None
+    lqr = planner.goal_loop if s.goal_lqr is not False else None
     if isinstance(lqr, str):  # no equilibrium at the goal, or an unstable loop
         lqr = None
     can_shoot = sys.params_from_costate is not None

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rrtcolearn.integrate import rollout
-from rrtcolearn.planning.connections import LAND_TOLERANCE, SHOOT_TOLERANCE, goal_lqr
+from rrtcolearn.planning.connections import LAND_TOLERANCE, SHOOT_TOLERANCE
 from rrtcolearn.planning.contracts import Edge
 from rrtcolearn.planning.improve.common import (
     INTERIOR_MISSES,
@@ -193,7 +193,7 @@ def _shortcuts(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None,
     n = sys.n_states
     prop, tree = planner.propagator, plan.tree
     lam, z0 = np.empty(n), np.empty(2 * n + 1)
-    lqr = goal_lqr(prop) if s.goal_lqr is not False else None
+    lqr = planner.goal_loop if s.goal_lqr is not False else None
     lqr = None if isinstance(lqr, str) else lqr
     path, origin = list(plan.path_nodes), {}
     if cut:
