@@ -264,7 +264,9 @@ def test_system_from_a_users_module(tmp_path, monkeypatch):
     plan = json.loads((out / "plan.json").read_text())
     assert plan["system"] == "damped_pendulum"
     assert "damped_pendulum" in (out / "config.toml").read_text()
-    for spec, contains in (("nosuchmodule:thing", "cannot import"),
+    for spec, contains in (("nosuchmodule:thing", "cannot import 'nosuchmodule' (No module "
+                                                  "named 'nosuchmodule'); it is looked for in "
+                                                  "the current directory and on PYTHONPATH"),
                            ("examples.damped_pendulum:nothing", "has no"),
                            ("rocket", "unknown system")):
         result = invoke("generate", "--system", spec, "--out", str(tmp_path / "x"))

@@ -116,6 +116,8 @@ def test_start_or_goal_inside_an_obstacle_is_refused(paper_model, start, goal, w
     ({"type": "box", "low": [1, 0], "high": [0, 1]}, "exceed"),
     ({"type": "halfplane", "normal": [0, 0], "offset": 1}, "non-zero"),
     ({"type": "circle"}, "unknown obstacle type"),
+    ("box:-1,-1,1,1", r"a dict such as .* not 'box:-1,-1,1,1' \(str\)"),  # the CLI's form
+    (3, r"not 3 \(int\)"),
 ])
 def test_malformed_obstacles_are_refused(paper_model, spec, message):
     with pytest.raises(ProblemError, match=message):

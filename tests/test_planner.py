@@ -103,6 +103,22 @@ def test_bad_queries_are_refused(paper_model, start, goal, tol, message):
         plan(paper_model, start, goal, tol)
 
 
+@pytest.mark.parametrize("kwargs, message", [
+    ({"seed": -1}, "seed must be a non-negative integer"),
+    ({"seed": 1.5}, "seed must be a non-negative integer"),
+    ({"time_limit": 0}, "time_limit must be a positive number"),
+    ({"time_limit": -1.0}, "time_limit must be a positive number"),
+    ({"time_limit": float("inf")}, "time_limit must be a positive number"),
+    ({"max_iterations": 0}, "max_iterations must be a positive integer"),
+    ({"max_iterations": 2.5}, "max_iterations must be a positive integer"),
+])
+def test_bad_seeds_and_limits_are_refused_as_on_the_command_line(paper_model, kwargs, message):
+    """The library refuses what `rrtcolearn plan` refuses, with its reason (a negative seed
+    was numpy's own error, a zero limit a plan that stopped before its first iteration)."""
+    with pytest.raises(ProblemError, match=message):
+        plan(paper_model, [-np.pi, 0], [0, 0], 0.1, **kwargs)
+
+
 def test_concurrent_queries_on_one_model_match_sequential(paper_model):
     """No shared mutable state: threads planning on one model give the sequential plans."""
     from concurrent.futures import ThreadPoolExecutor

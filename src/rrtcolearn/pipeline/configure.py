@@ -10,9 +10,9 @@ import numpy as np
 
 from rrtcolearn import derive
 from rrtcolearn.config import Config
-from rrtcolearn.errors import ConfigError
+from rrtcolearn.errors import ArtefactError, ConfigError
 from rrtcolearn.systems import make
-from rrtcolearn.systems.base import System
+from rrtcolearn.systems.base import System, dynamics_mismatch
 
 _STREAMS = {"generate": 0, "clean": 1, "plan": 2, "derive": 3}
 
@@ -87,7 +87,34 @@ def resolve(config: Config, system: System | None = None) -> Config:
     if config.learn.learner is None:
         choices.append(derive.learner(system))
     choices += derive.plan_choices(config.plan, system, g.max_state_distance)
+    replaced = _replaced_limits(config)
+    if replaced is not None:
+        choices.append(replaced)
     return record_choices(config, choices)
+
+
+def _replaced_limits(config: Config) -> derive.Choice | None:
+    """A record (shown with the derived settings) that the configured input limits replace
+    other ones the system's definition declares, which is documented but was silent: a
+    definition with |tau| <= 0.6 fitted with ``--u-max 1`` plans with |u| up to 1. None
+    when the configuration sets no limits or the definition declares none or the same."""
+    bounds = config.system.input_bounds()
+    if bounds is None or config.system.limit_mode == "truncate":
+        return None
+    own = make(config.system.name)  # as the definition declares it
+    if not own.input_limited:
+        return None
+    low, high = own.input_limits()
+    if np.array_equal(low, bounds[0]) and np.array_equal(high, bounds[1]):
+        return None
+
+    def box(lo, hi) -> str:
+        return ", ".join(f"{a:g} <= {name} <= {b:g}"
+                         for name, a, b in zip(own.input_names, lo, hi, strict=True))
+
+    return derive.Choice("system.input_limits", box(*bounds),
+                         f"configured: they replace the limits the system's definition "
+                         f"declares ({box(low, high)})")
 
 
 def simulation_options(config: Config) -> dict:
@@ -161,6 +188,20 @@ def recorded_system(config: Config, recorded: str | None, system: str | None, wh
             "register it before loading, or on the command line give --system "
             "module:attribute naming the function that builds it")
     return config, system_from_config(config)
+
+
+def check_dynamics(system: System, recorded: object, what: str) -> None:
+    """An ArtefactError unless ``recorded`` (the `dynamics_probe` a dataset or model file
+    holds) is ``system``'s dynamics and running cost: a definition edited after the fit
+    keeps its name, and its model would plan with dynamics it never learned. Files written
+    before the record (``recorded`` None) are not checked."""
+    if recorded is None:
+        return
+    why = dynamics_mismatch(system, recorded)
+    if why is not None:
+        raise ArtefactError(f"{what} was made for other dynamics than system {system.name!r} "
+                            f"has now ({why}): give the system it was made with, or make it "
+                            "again for this one (`rrtcolearn run`)")
 
 
 def query_states(config: Config, system: System) -> tuple[list[float], list[float]]:

@@ -16,6 +16,7 @@ from rrtcolearn.errors import ArtefactError, ConfigError, EnvironmentProblem
 from rrtcolearn.learn.features import learning_geometry
 from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.pipeline.configure import (
+    check_dynamics,
     record_choices,
     recorded_system,
     resolve,
@@ -33,7 +34,7 @@ from rrtcolearn.pipeline.layout import (
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.rrt import PlannerSettings, RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
-from rrtcolearn.systems.base import System
+from rrtcolearn.systems.base import System, dynamics_probe
 
 MODEL_FORMAT = "rrtcolearn.model"
 MODEL_SCHEMA = 2
@@ -119,6 +120,7 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
     run_dir = Path(run_dir)
     system = system_from_config(config)
     data, meta = load_dataset(run_dir / CLEANED_FILE, system.name)
+    check_dynamics(system, meta.get("dynamics"), str(run_dir / CLEANED_FILE))
     config = with_artefact_sections(config, meta, ("system", "generate", "clean"))
     config = resolve(config, system)
     config = record_choices(config, _learn_choices(system, data, config))
@@ -133,6 +135,7 @@ def fit(config: Config, run_dir: str | Path) -> FittedModel:
         "schema_version": MODEL_SCHEMA,
         "package_version": __version__,
         "system": system.name,
+        "dynamics": dynamics_probe(system),
         "cleaned_file": CLEANED_FILE,
         "cleaned_sha256": meta["sha256"],
         "points": len(data),
@@ -191,6 +194,7 @@ def read_model_info(run_dir: str | Path, system: str | None = None
     except Exception:
         raise ArtefactError(f"{run_dir / MODEL_FILE} holds an invalid configuration") from None
     config, built = recorded_system(config, info.get("system"), system, f"the model in {run_dir}")
+    check_dynamics(built, info.get("dynamics"), f"the model in {run_dir}")
     return info, config, built
 
 

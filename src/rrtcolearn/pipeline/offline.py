@@ -21,6 +21,7 @@ from rrtcolearn.data.store import ShardStore, load_dataset, save_dataset, write_
 from rrtcolearn.errors import ArtefactError, ConfigError
 from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.pipeline.configure import (
+    check_dynamics,
     query_states,
     record_choices,
     resolve,
@@ -31,7 +32,7 @@ from rrtcolearn.pipeline.configure import (
 )
 from rrtcolearn.pipeline.layout import CLEANED_FILE, COLEARN_FILE, DATASET_FILE, save_config
 from rrtcolearn.pipeline.model import fit_functions
-from rrtcolearn.systems.base import System
+from rrtcolearn.systems.base import System, dynamics_probe
 
 if TYPE_CHECKING:
     from rrtcolearn.data.clean import CleaningResult
@@ -43,7 +44,8 @@ if TYPE_CHECKING:
 
 
 def _meta(config: Config, system: System, **extra) -> dict:
-    return {"system": system.name, "config": config.model_dump(mode="json"), **extra}
+    return {"system": system.name, "dynamics": dynamics_probe(system),
+            "config": config.model_dump(mode="json"), **extra}
 
 
 def _generation_key(config: Config, system: System) -> str:
@@ -52,6 +54,8 @@ def _generation_key(config: Config, system: System) -> str:
             # how n_simulations was chosen does not change the data it gives
             "generate": config.generate.model_dump(mode="json", exclude={"offline_budget"}),
             "goal": _data_goal(config, system),
+            # the dynamics themselves: a definition edited under the same name
+            "dynamics": dynamics_probe(system),
             "box": [system.state_low.tolist(), system.state_high.tolist(),
                     system.param_low.tolist(), system.param_high.tolist()]}
     return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
@@ -241,6 +245,7 @@ def clean(config: Config, run_dir: str | Path,
     run_dir = Path(run_dir)
     system = system_from_config(config)
     raw, raw_meta = load_dataset(run_dir / DATASET_FILE, system.name)
+    check_dynamics(system, raw_meta.get("dynamics"), str(run_dir / DATASET_FILE))
     cleaned, result = clean_dataset(config, system, raw, progress)
     stats = {"raw_points": len(raw), "kept_points": len(cleaned), "draws": result.draws,
              "dataset_sha256": raw_meta["sha256"]}

@@ -15,7 +15,7 @@ from rrtcolearn.errors import ConfigError
 from rrtcolearn.evaluate import StepChecks
 from rrtcolearn.pipeline.configure import recorded_system
 from rrtcolearn.pipeline.model import FittedModel
-from rrtcolearn.planning.problem import PlanningProblem, is_own_limit
+from rrtcolearn.planning.problem import PlanningProblem, ProblemError, is_own_limit
 from rrtcolearn.planning.rrt import RRTCoLearn
 from rrtcolearn.planning.termination import TerminationCondition
 from rrtcolearn.planning.tree import Plan
@@ -106,6 +106,7 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
     solution gets one such round (`POLISH_ALLOWANCE`), its raw and polished costs in
     ``extra["polish"]``."""
     cfg = config or model.config
+    _check_limits(seed, time_limit, max_iterations)
     problem = make_problem(model.system, cfg, start, goal, goal_tolerance, u_max=u_max,
                            obstacles=obstacles, is_valid=is_valid, goal_fn=goal_fn,
                            goal_sampler=goal_sampler)
@@ -139,6 +140,24 @@ def plan(model: FittedModel, start, goal, goal_tolerance: float, seed: int = 0, 
     result.extra["seed"] = int(seed) if isinstance(seed, (int, np.integer)) else None
     result.extra["config"] = cfg.model_dump(mode="json")
     return result
+
+
+def _check_limits(seed, time_limit, max_iterations) -> None:
+    """`plan`'s seed and limits as the command line checks them: a ProblemError for a
+    negative or non-integer seed, a time limit that is not a positive number, or an
+    iteration limit that is not a positive integer (each would otherwise end in numpy's
+    own error or in a plan that stops before its first iteration)."""
+    if isinstance(seed, (bool, float)) or (isinstance(seed, (int, np.integer)) and seed < 0):
+        raise ProblemError(f"seed must be a non-negative integer, got {seed!r}")
+    if time_limit is not None and (isinstance(time_limit, bool) or not isinstance(
+            time_limit, (int, float, np.integer, np.floating)) or not time_limit > 0
+            or not np.isfinite(time_limit)):
+        raise ProblemError(f"time_limit must be a positive number of seconds (or None), "
+                           f"got {time_limit!r}")
+    if max_iterations is not None and (isinstance(max_iterations, bool) or not isinstance(
+            max_iterations, (int, np.integer)) or max_iterations < 1):
+        raise ProblemError(f"max_iterations must be a positive integer (or None), got "
+                           f"{max_iterations!r}")
 
 
 PLAN_FORMAT = "rrtcolearn.plan"

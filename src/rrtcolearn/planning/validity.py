@@ -8,7 +8,7 @@ Obstacles are an online concern: the same dataset and models serve any set of th
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,6 +51,10 @@ Obstacle = Box | HalfPlane | Workspace
 
 def obstacle_from_dict(spec: dict, n_states: int) -> Obstacle:
     """Build an obstacle from its config form; ValueError on a malformed one."""
+    if not isinstance(spec, Mapping):
+        raise TypeError(f"an obstacle is an Obstacle or a dict such as {{'type': 'box', "
+                        f"'low': [...], 'high': [...]}} or {{'type': 'halfplane', 'normal': "
+                        f"[...], 'offset': ...}}, not {spec!r:.60} ({type(spec).__name__})")
     kind = spec.get("type")
     if kind == "box":
         low = np.asarray(spec["low"], dtype=np.float64)

@@ -73,7 +73,13 @@ def _from_module(spec: str) -> System:
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
-        raise ValueError(f"system {spec!r}: cannot import {module_name!r} ({exc})") from None
+        # the module itself not found (not an import inside it): say where it is looked for
+        where = ("; it is looked for in the current directory and on PYTHONPATH: run from "
+                 "the directory that holds it or add that directory to PYTHONPATH"
+                 if isinstance(exc, ModuleNotFoundError) and exc.name is not None
+                 and f"{module_name}.".startswith(f"{exc.name}.") else "")
+        raise ValueError(f"system {spec!r}: cannot import {module_name!r} ({exc}){where}"
+                         ) from None
     try:
         obj = getattr(module, attribute)
     except AttributeError:

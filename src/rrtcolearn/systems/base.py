@@ -163,3 +163,69 @@ class System:
             lo = self.state_low[j]
             shift[:, j] = -2.0 * np.pi * np.floor((x[:, j] - lo) / (2.0 * np.pi))
         return shift
+
+
+# The dynamics' fingerprint (`dynamics_probe`): the plain dynamics and the Hamiltonian at this
+# many fixed states, inputs and costates, recorded in every dataset and model and compared
+# on load to within this, relative to 1 + |value| (a rebuild's rounding, not a change)
+PROBE_POINTS = 4
+PROBE_TOLERANCE = 1e-9
+
+
+def dynamics_probe(system: System) -> dict:
+    """The values that tie data and models to ``system``'s dynamics and running cost: f(x, u)
+    and H(x, lambda, u, w = 1) at `PROBE_POINTS` states drawn in its state box, inputs in its
+    input box (where finite; else in [-1, 1]) and costates in [-1, 1], with those points.
+
+    Why: a system is known by its name only; a definition edited after a fit (another mass,
+    another gravity) keeps the name, and its model would plan with dynamics it never learned
+    (edges that end elsewhere than the learned steering aims them). The points are stored
+    with the values (JSON), so a check does not depend on how they were drawn."""
+    n, m = system.n_states, system.n_inputs
+    q = np.random.default_rng(0x70726F6265).random((PROBE_POINTS, 2 * n + m))  # ("probe")
+    x = system.state_low + q[:, :n] * (system.state_high - system.state_low)
+    low, high = system.input_limits()
+    finite = np.isfinite(low) & np.isfinite(high)
+    centre = np.where(finite, 0.5 * (low + high), 0.0) if finite.any() else np.zeros(m)
+    half = np.where(finite, 0.5 * (high - low), 1.0) if finite.any() else np.ones(m)
+    u = centre + (2.0 * q[:, n : n + m] - 1.0) * half
+    lam = 2.0 * q[:, n + m :] - 1.0
+    f, h = _probe_values(system, x, u, lam)
+    return {"x": x.tolist(), "u": u.tolist(), "costate": lam.tolist(), "f": f.tolist(),
+            "H": h.tolist()}
+
+
+def _probe_values(system: System, x: np.ndarray, u: np.ndarray, lam: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    with np.errstate(all="ignore"):
+        f = np.asarray(system.dynamics(x, u), dtype=np.float64)
+        h = np.asarray(system.hamiltonian(x, lam, u, 1.0), dtype=np.float64).reshape(-1)
+    return f, h
+
+
+def dynamics_mismatch(system: System, probe: object) -> str | None:
+    """None when ``system`` gives the values of ``probe`` (a `dynamics_probe`, read from a
+    file); else what differs, as a sentence."""
+    n, m = system.n_states, system.n_inputs
+    try:
+        x, u, lam, f, h = (np.asarray(probe[k], dtype=np.float64)  # type: ignore[index]
+                           for k in ("x", "u", "costate", "f", "H"))
+    except (TypeError, KeyError, ValueError):
+        return "its record of the dynamics is unreadable"
+    k = len(x)
+    if x.shape != (k, n) or u.shape != (k, m) or lam.shape != (k, n) or f.shape != (k, n) \
+            or h.shape != (k,) or k == 0:
+        return (f"it records dynamics of {x.shape[-1] if x.ndim == 2 else '?'} states and "
+                f"{u.shape[-1] if u.ndim == 2 else '?'} inputs, the system has {n} and {m}")
+    f_now, h_now = _probe_values(system, x, u, lam)
+    for name, old, new in (("the dynamics f(x, u)", f, f_now),
+                           ("the running cost (the Hamiltonian)", h, h_now)):
+        gap = np.abs(new - old) / (1.0 + np.abs(old))
+        if not np.all(gap <= PROBE_TOLERANCE):  # (NaN counts as a difference)
+            i = int(np.unravel_index(np.argmax(np.where(np.isfinite(gap), gap, np.inf)),
+                                     gap.shape)[0])
+            return (f"{name} differ: at x = {np.round(x[i], 4).tolist()}, "
+                    f"u = {np.round(u[i], 4).tolist()} it recorded "
+                    f"{np.round(np.atleast_1d(old[i]), 6).tolist()}, the system gives "
+                    f"{np.round(np.atleast_1d(new[i]), 6).tolist()}")
+    return None
