@@ -140,3 +140,44 @@ def test_without_a_funnel_the_plan_is_unchanged(acrobot):
     assert out.path_nodes == [0, node]
     assert out.extra["start_funnel"] == {"rounds": 0, "nearest": None, "tries": 0,
                                          "kept": False}
+
+
+def test_the_grid_chain_steers_where_the_free_time_chain_stalls(acrobot):
+    """Along the search's nearest extremal of query 2 (0.028 from the start) the funnel
+    connection's continuation fails and multiple shooting with a free final time does too
+    (segment ends between RK4 steps: the residual stalls); the same extremal cut on the RK4
+    grid with its duration fixed (`FunnelConnection._grid_chain`) gives a chain from the
+    start, each edge re-simulated here from its start and costate to its recorded end and
+    cost, the last in the goal region (measured: cost 35.8)."""
+    from rrtcolearn.planning.connections import FunnelConnection
+
+    system, problem = acrobot
+    stream = _stream(system, problem, query=2)
+    search = stream.aimed(START, system, problem.offset_to)
+    funnel = None
+    while (part := search.step(stream.build)) is not None:
+        funnel = part
+    dist = search.distances(funnel)
+    j = int(np.argmin(dist))
+    assert dist[j] < 0.05
+    settings = PlannerSettings(dt=DT, funnel_duration=DURATION, funnel_max_cost=500.0)
+    conn = FunnelConnection(Propagator(problem, settings), funnel, duration=DURATION)
+    offset = problem.goal_offset(START[None])[0]
+    assert conn.steer(offset, j, 1.5 * DURATION) is None
+    guess = funnel.extremal(j)
+    grid = conn._grid_chain
+    conn._grid_chain = lambda x0, g: None  # the chain as it was: free final time only
+    assert conn._chain(START, guess, 1.5 * DURATION) is None
+    conn._grid_chain = grid
+    chain = conn._chain(START, guess, 1.5 * DURATION)
+    assert chain is not None
+    rhs = references.state_costate_rhs(references.acrobot, 1, 1.0)
+    at = START
+    for edge in chain:
+        np.testing.assert_allclose(edge.traj[0, :4], at, atol=1e-12)
+        end = rk4(rhs, np.r_[at, edge.costate, 0.0], DT, edge.steps)[-1]
+        np.testing.assert_allclose(end[:4], edge.traj[-1, :4], atol=1e-4)
+        assert end[-1] == pytest.approx(edge.cost, rel=1e-6)
+        at = edge.traj[-1, :4]
+    assert np.linalg.norm(problem.goal_offset(at[None])) <= TOLERANCE
+    assert sum(e.cost for e in chain) < 100.0

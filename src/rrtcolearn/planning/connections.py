@@ -51,6 +51,10 @@ FUNNEL_STRETCH = 1.5  # a funnel connection may last this times the funnel's dur
 # the continuation's extremal (docs/ablation.md, "Multiple shooting along a funnel
 # continuation")
 CHAIN_SEGMENTS = (2, 4, 8)
+# where every free-final-time chain fails: the last count of segments with their ends on the
+# RK4 grid and the duration fixed, from the node, else by continuation from where the
+# extremal starts to the node at these fractions of the way (`FunnelConnection._grid_chain`)
+GRID_FRACTIONS = (0.25, 0.5, 0.75, 1.0)
 # choose-parent through the funnel (`FunnelConnection.cheaper`) tries plan.goal_parent_tries
 # nodes within each of these multiples of the funnel's radius in turn (the untried ones):
 # a continuation converges from farther than the radius the connection keeps to while the
@@ -560,7 +564,54 @@ class FunnelConnection:
                 chain = extremal_chain(prop, x0, res.costates, res.steps)
                 if chain is not None:
                     return chain
-        return None
+        return self._grid_chain(x0, guess)
+
+    def _grid_chain(self, x0: np.ndarray, guess: Continuation) -> list[Edge] | None:
+        """`_chain`'s last resort: the extremal ``guess`` cut into ``CHAIN_SEGMENTS[-1]``
+        segments whose ends lie on the RK4 grid, solved with the duration fixed
+        (`multiple_shoot` without its free-final-time phase: Pontryagin's extremal of that
+        duration) from ``x0``; where that fails, by continuation from the extremal's own
+        start (the funnel state; the node itself for a continuation's guess) to ``x0`` at
+        `GRID_FRACTIONS` of the way, each solve started from the last.
+
+        Why: the free phase's segment ends move between RK4 steps, where the states are
+        interpolated; along the acrobot's swing-up from the funnel state itself it stalled
+        at a residual of 7e-5, where the grid's converges in two iterations to 1e-13. The
+        start-funnel search then steers from 3 of the 4 seeds where it reached the start's
+        neighbourhood and no chain was found (docs/anytime.md, "At the first solve?")."""
+        prop = self.propagator
+        prob, sys, s = prop.problem, prop.problem.system, prop.settings
+        n, m = sys.n_states, CHAIN_SEGMENTS[-1]
+        total = max(m, round(guess.duration / s.dt))
+        ends = np.rint(np.arange(1, m + 1) * (total / m)).astype(np.int64)
+        steps = np.diff(ends, prepend=0)
+        with np.errstate(all="ignore"):
+            z, _ = endpoints(sys, prob.goal, np.column_stack(
+                [np.repeat(guess.goal_costate[None], m, axis=0),
+                 (total - ends + steps) * s.dt]), s.time_weight, -s.dt)
+        if not np.isfinite(z).all():
+            return None
+        turns = np.zeros(n)
+        angles = list(sys.angle_dims)
+        turns[angles] = 2.0 * np.pi * np.round((x0 - z[0, :n])[angles] / (2.0 * np.pi))
+        start = z[0, :n] + turns
+        lams, xs = np.vstack([guess.costate[None], z[1:, n:]]), z[1:, :n] + turns
+        terminal = terminal_conditions(prob)
+
+        def solve(at: np.ndarray, lams: np.ndarray, xs: np.ndarray):
+            return multiple_shoot(sys, at, lams, xs, steps * s.dt, terminal,
+                                  time_weight=s.time_weight, dt=s.dt,
+                                  max_duration=total * s.dt, grid_tolerance=LAND_TOLERANCE,
+                                  free_time=False)
+
+        res = solve(x0, lams, xs)
+        if res is None:
+            for f in GRID_FRACTIONS:
+                res = solve(start + f * (x0 - start), lams, xs)
+                if res is None:
+                    return None
+                lams, xs = res.costates, res.states[1:]
+        return extremal_chain(prop, x0, res.costates, res.steps)
 
     def report(self) -> dict:
         longer = self.duration != self.propagator.settings.funnel_duration
