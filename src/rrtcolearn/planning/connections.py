@@ -578,7 +578,7 @@ class FunnelConnection:
         interpolated; along the acrobot's swing-up from the funnel state itself it stalled
         at a residual of 7e-5, where the grid's converges in two iterations to 1e-13. The
         start-funnel search then steers from 3 of the 4 seeds where it reached the start's
-        neighbourhood and no chain was found (docs/anytime.md, "At the first solve?")."""
+        neighbourhood and no chain was found (docs/anytime.md, "Segments on the RK4 grid")."""
         prop = self.propagator
         prob, sys, s = prop.problem, prop.problem.system, prop.settings
         n, m = sys.n_states, CHAIN_SEGMENTS[-1]

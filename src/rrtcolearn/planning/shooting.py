@@ -563,7 +563,7 @@ def multiple_shoot(system: System, x0: np.ndarray, costates: np.ndarray, states:
     ends move between RK4 steps, where `endpoints` interpolates; along the acrobot's 5-s
     swing-up it stalled at a residual of 7e-5 (no trust radius descends) from the funnel's
     own extremal, where the same segments on the grid, durations fixed, converge in two
-    iterations to 1e-13 (docs/anytime.md, "At the first solve?")."""
+    iterations to 1e-13 (docs/anytime.md, "Segments on the RK4 grid")."""
     x0 = np.asarray(x0, dtype=np.float64)
     lams = np.asarray(costates, dtype=np.float64)
     xs = np.asarray(states, dtype=np.float64).reshape(len(lams) - 1, len(x0))
