@@ -12,7 +12,14 @@ import pytest
 
 import rrtcolearn.planning.funnel as funnel_module
 from rrtcolearn.anytime import solve_with_restarts
-from rrtcolearn.planning.funnel import FUNNEL_STREAM, FunnelStream, GoalFunnel
+from rrtcolearn.planning.funnel import (
+    AIM_DRAWS,
+    AIM_POOL,
+    AIM_ROUNDS,
+    FUNNEL_STREAM,
+    FunnelStream,
+    GoalFunnel,
+)
 from rrtcolearn.planning.improve import shortcut
 from rrtcolearn.planning.problem import PlanningProblem
 from rrtcolearn.planning.rrt import RRTCoLearn
@@ -62,7 +69,12 @@ def test_a_querys_solves_build_its_funnel_once(new_planner, monkeypatch):
     planner, plans = new_planner(), []
     result = _query(planner, 1, plans)
     assert result.extra["anytime"]["solves"] == len(plans) >= 3
-    assert len(batches) == 1  # SIZE extremals (a costate for each draw here), once
+    # SIZE extremals (a costate for each draw here), once; the rest are the rounds of the
+    # query's search for extremals through the start (`AimedSearch`: its draws and its
+    # pool, each round's own), also run once for the query
+    query_funnel = [b for b in batches if b not in (AIM_POOL * AIM_DRAWS, AIM_POOL)]
+    assert query_funnel == [SIZE]
+    assert len(batches) - 1 <= 2 * AIM_ROUNDS
     stream = planner.funnel_stream(1)
     assert stream.built == 1 and len(stream) == SIZE
     # every solve used that funnel (the same states), the later ones connecting through it too
@@ -158,7 +170,10 @@ def test_an_anytime_query_with_its_shortcuts_is_the_same_whatever_ran_before(new
         return solve_with_restarts(planner.solve, TerminationCondition(None, BUDGET), 1,
                                    improve=partial(shortcut, planner), in_steps=True)
     want = run(new_planner())
-    assert want.solved and want.extra["start_funnel"]["rounds"] > 0  # the search ran
+    # the search ran: in the solves (the funnel connection's rounds from the start) and
+    # in the improvements (`start_funnel`)
+    assert want.solved and want.extra["start_funnel"]["rounds"] \
+        + want.extra.get("funnel_aimed", [0])[0] > 0
     planner = new_planner()
     for _ in range(2):
         got = run(planner)

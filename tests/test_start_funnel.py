@@ -181,3 +181,40 @@ def test_the_grid_chain_steers_where_the_free_time_chain_stalls(acrobot):
         at = edge.traj[-1, :4]
     assert np.linalg.norm(problem.goal_offset(at[None])) <= TOLERANCE
     assert sum(e.cost for e in chain) < 100.0
+
+
+def test_the_funnel_connection_steers_from_the_start_where_no_node_does(acrobot):
+    """In a solve, where no tree node steers into the funnel, each call of the funnel
+    connection runs a round of the query's aimed search and steers from the root along the
+    pool's nearest extremal (`FunnelConnection._from_start`): on the suite's funnel it
+    connects the start itself within the search's rounds, the chain re-simulating by the
+    suite's RK4 into the goal region; the rounds stop at AIM_ROUNDS and are the query's
+    (the anytime search continues them)."""
+    from rrtcolearn.planning.connections import FunnelConnection
+
+    system, problem = acrobot
+    stream = _stream(system, problem)
+    settings = PlannerSettings(dt=DT, funnel_duration=DURATION, funnel_max_cost=500.0)
+    conn = FunnelConnection(Propagator(problem, settings), stream.parts[(0, 3000)],
+                            duration=DURATION)
+    tree = types.SimpleNamespace(data=types.SimpleNamespace(states=START[None]))
+    assert conn._from_start(tree) is None  # no search without `aim`
+    conn.aim(stream)
+    found, calls = None, 0
+    while found is None and calls <= AIM_ROUNDS:
+        found, calls = conn._from_start(tree), calls + 1
+    assert found is not None and found[0] == 0 and conn.aimed[1] >= 1
+    assert conn.report()["funnel_aimed"] == conn.aimed
+    rhs = references.state_costate_rhs(references.acrobot, 1, 1.0)
+    at = START
+    for edge in found[1]:
+        end = rk4(rhs, np.r_[at, edge.costate, 0.0], DT, edge.steps)[-1]
+        np.testing.assert_allclose(end[:4], edge.traj[-1, :4], atol=1e-4)
+        assert end[-1] == pytest.approx(edge.cost, rel=1e-6)
+        at = edge.traj[-1, :4]
+    assert np.linalg.norm(problem.goal_offset(at[None])) <= TOLERANCE
+    search = stream.aimed(START, system, problem.offset_to)
+    assert search.rounds == conn.aimed[0]  # the query's search, shared
+    for _ in range(AIM_ROUNDS - search.rounds):
+        conn._from_start(tree)
+    assert conn._from_start(tree) is None and search.rounds == AIM_ROUNDS

@@ -259,6 +259,9 @@ AIM_STREAM = 0x61696D  # ... and, under it, the aimed search's ("aim")
 # and its factor per round, and the rounds in all (docs/anytime.md, "Funnel extremals
 # through the start")
 AIM_POOL, AIM_DRAWS, AIM_SIGMA, AIM_SHRINK, AIM_ROUNDS = 5, 64, 0.05, 0.6, 12
+# the pool's nearest extremal is steered along again only once it is this much nearer than
+# the last one tried (each try, a continuation and multiple shooting, costs 0.1-1.5 s)
+AIM_RETRY = 0.7
 
 
 class AimedSearch:

@@ -9,15 +9,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from rrtcolearn.planning.connections import FunnelConnection
+from rrtcolearn.planning.funnel import AIM_RETRY
 from rrtcolearn.planning.improve.common import costs_to_come, grafted, recorded
 from rrtcolearn.planning.tree import Plan
 
 if TYPE_CHECKING:
     from rrtcolearn.planning.rrt import RRTCoLearn
-
-# `start_funnel` tries the pool's nearest extremal again only once it is this much nearer
-# than the last one tried (each try, a continuation and multiple shooting, costs 0.1-1.5 s)
-AIM_RETRY = 0.7
 
 
 def start_funnel(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | None = None
