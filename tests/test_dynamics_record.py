@@ -101,14 +101,14 @@ def test_configured_limits_that_replace_the_definitions_are_shown():
     """A definition's own input limits replaced by configured ones (documented, but it was
     silent) are recorded with the derived settings, both boxes named; the same limits, or
     none configured, record nothing."""
-    from rrtcolearn.pipeline.configure import _replaced_limits
+    from rrtcolearn.pipeline.configure import replaced_limits
 
     spec = 'system.name="examples.sparse_rrt_cartpole:make_cartpole"'  # |F| <= 300
-    wider = _replaced_limits(load_config(overrides=[spec, "system.u_max=400"]))
+    wider = replaced_limits(load_config(overrides=[spec, "system.u_max=400"]))
     assert wider.key == "system.input_limits"
     assert wider.text == ("-400 <= force <= 400: configured: they replace the limits the "
                           "system's definition declares (-300 <= force <= 300)")
-    assert _replaced_limits(load_config(overrides=[spec, "system.u_max=300"])) is None
-    assert _replaced_limits(load_config(overrides=[spec])) is None
+    assert replaced_limits(load_config(overrides=[spec, "system.u_max=300"])) is None
+    assert replaced_limits(load_config(overrides=[spec])) is None
     # the pendulum declares none: a limit is the paper's u_max, nothing replaced
-    assert _replaced_limits(load_config(overrides=["system.u_max=1"])) is None
+    assert replaced_limits(load_config(overrides=["system.u_max=1"])) is None

@@ -87,17 +87,16 @@ def resolve(config: Config, system: System | None = None) -> Config:
     if config.learn.learner is None:
         choices.append(derive.learner(system))
     choices += derive.plan_choices(config.plan, system, g.max_state_distance)
-    replaced = _replaced_limits(config)
-    if replaced is not None:
-        choices.append(replaced)
     return record_choices(config, choices)
 
 
-def _replaced_limits(config: Config) -> derive.Choice | None:
+def replaced_limits(config: Config) -> derive.Choice | None:
     """A record (shown with the derived settings) that the configured input limits replace
     other ones the system's definition declares, which is documented but was silent: a
     definition with |tau| <= 0.6 fitted with ``--u-max 1`` plans with |u| up to 1. None
-    when the configuration sets no limits or the definition declares none or the same."""
+    when the configuration sets no limits or the definition declares none or the same.
+    Made where the data are (`offline.generate`: the definition is built again here) and
+    carried by every file made from them, not at every load."""
     bounds = config.system.input_bounds()
     if bounds is None or config.system.limit_mode == "truncate":
         return None

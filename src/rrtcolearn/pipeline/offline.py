@@ -24,6 +24,7 @@ from rrtcolearn.pipeline.configure import (
     check_dynamics,
     query_states,
     record_choices,
+    replaced_limits,
     resolve,
     seed_stream,
     simulation_options,
@@ -94,6 +95,9 @@ def generate(config: Config, run_dir: str | Path,
     run_dir = Path(run_dir)
     system = system_from_config(config)
     config = resolve(config, system)
+    replaced = replaced_limits(config)
+    if replaced is not None:
+        config = record_choices(config, [replaced])
     if config.generate.n_simulations is None:  # an offline budget: a convergence test
         config = converge_simulations(config, run_dir, system)
     key = _generation_key(config, system)

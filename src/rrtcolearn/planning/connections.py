@@ -27,7 +27,13 @@ import numpy as np
 
 from rrtcolearn.learn.models import LearnedFunctions
 from rrtcolearn.planning.contracts import Edge, GrowingTree, grown
-from rrtcolearn.planning.funnel import AIM_RETRY, Continuation, FunnelStream, GoalFunnel
+from rrtcolearn.planning.funnel import (
+    AIM_RETRY,
+    AimedSearch,
+    Continuation,
+    FunnelStream,
+    GoalFunnel,
+)
 from rrtcolearn.planning.learned import REFINE_PROGRESS, goal_query
 from rrtcolearn.planning.lqr import GoalLQR, LQRTry, build_goal_lqr
 from rrtcolearn.planning.problem import PlanningProblem
@@ -434,22 +440,16 @@ class FunnelConnection:
         about the same CPU (docs/anytime.md, "The search in the first solve")."""
         if self.stream is None:
             return None
-        prop = self.propagator
-        prob, radius = prop.problem, prop.settings.funnel_radius
+        prob = self.propagator.problem
         root = tree.data.states[0]
         search = self.stream.aimed(root, prob.system, prob.offset_to)
-        funnel = None if search is None else search.step(self.stream.build)
-        if funnel is None:
+        done = None if search is None else aimed_round(
+            self.propagator, self.stream, search, root, self.duration, self._aim_tried)
+        if done is None:
             return None
         self.aimed[0] += 1
-        dist = search.distances(funnel)
-        j = int(np.argmin(dist)) if len(dist) else -1
-        if j < 0 or dist[j] > radius or dist[j] > AIM_RETRY * self._aim_tried:
-            return None
-        self._aim_tried = float(dist[j])
-        self.aimed[1] += 1
-        chain = FunnelConnection(prop, funnel, duration=self.duration).steer_from(
-            root, dist[j : j + 1], np.array([j]), radius, own=True)
+        steered, self._aim_tried, chain = done
+        self.aimed[1] += steered
         return None if chain is None else (0, chain)
 
     def _from_node(self, tree: GrowingTree) -> tuple[int, list[Edge]] | None:
@@ -590,24 +590,14 @@ class FunnelConnection:
         backwards from the goal; `extremal_chain` makes and checks the edges."""
         prop = self.propagator
         prob, sys, s = prop.problem, prop.problem.system, prop.settings
-        n = sys.n_states
         terminal = terminal_conditions(prob)
-        angles = list(sys.angle_dims)
         for m in CHAIN_SEGMENTS:
             # the segments' starts, as durations back from the goal (the first is x0's)
-            back = guess.duration * (1.0 - np.arange(0, m) / m)
-            with np.errstate(all="ignore"):
-                z, _ = endpoints(sys, prob.goal, np.column_stack(
-                    [np.repeat(guess.goal_costate[None], m, axis=0), back]),
-                    s.time_weight, -s.dt)
-            if not np.isfinite(z).all():
+            segments = self._segments(x0, guess, guess.duration * (1.0 - np.arange(0, m) / m))
+            if segments is None:
                 return None
-            # the extremal reaches x0 up to whole turns of its angles (the goal's image
-            # nearest the node): its states moved by them
-            turns = np.zeros(n)
-            turns[angles] = 2.0 * np.pi * np.round((x0 - z[0, :n])[angles] / (2.0 * np.pi))
-            res = multiple_shoot(sys, x0, np.vstack([guess.costate[None], z[1:, n:]]),
-                                 z[1:, :n] + turns, np.full(m, guess.duration / m), terminal,
+            _, lams, xs = segments
+            res = multiple_shoot(sys, x0, lams, xs, np.full(m, guess.duration / m), terminal,
                                  time_weight=s.time_weight, dt=s.dt, max_duration=longest,
                                  tolerance=SHOOT_TOLERANCE, grid_tolerance=LAND_TOLERANCE)
             if res is not None:
@@ -615,6 +605,29 @@ class FunnelConnection:
                 if chain is not None:
                     return chain
         return self._grid_chain(x0, guess)
+
+    def _segments(self, x0: np.ndarray, guess: Continuation, back: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The extremal ``guess`` at its segments' starts, given as durations ``back`` (m,)
+        from the goal (the first at x0's end of it), integrated backwards from the goal:
+        that first state (n,), the segments' costates (m, n; the first ``guess``'s own) and
+        the interior segments' start states (m - 1, n), all moved by the whole turns of
+        their angles that bring the first nearest ``x0`` (the goal's image nearest the
+        node); None where the integration fails."""
+        prop = self.propagator
+        prob, sys, s = prop.problem, prop.problem.system, prop.settings
+        n = sys.n_states
+        with np.errstate(all="ignore"):
+            z, _ = endpoints(sys, prob.goal, np.column_stack(
+                [np.repeat(guess.goal_costate[None], len(back), axis=0), back]),
+                s.time_weight, -s.dt)
+        if not np.isfinite(z).all():
+            return None
+        turns = np.zeros(n)
+        angles = list(sys.angle_dims)
+        turns[angles] = 2.0 * np.pi * np.round((x0 - z[0, :n])[angles] / (2.0 * np.pi))
+        return z[0, :n] + turns, np.vstack([guess.costate[None], z[1:, n:]]), \
+            z[1:, :n] + turns
 
     def _grid_chain(self, x0: np.ndarray, guess: Continuation) -> list[Edge] | None:
         """`_chain`'s last resort: the extremal ``guess`` cut into ``CHAIN_SEGMENTS[-1]``
@@ -631,21 +644,14 @@ class FunnelConnection:
         neighbourhood and no chain was found (docs/anytime.md, "Segments on the RK4 grid")."""
         prop = self.propagator
         prob, sys, s = prop.problem, prop.problem.system, prop.settings
-        n, m = sys.n_states, CHAIN_SEGMENTS[-1]
+        m = CHAIN_SEGMENTS[-1]
         total = max(m, round(guess.duration / s.dt))
         ends = np.rint(np.arange(1, m + 1) * (total / m)).astype(np.int64)
         steps = np.diff(ends, prepend=0)
-        with np.errstate(all="ignore"):
-            z, _ = endpoints(sys, prob.goal, np.column_stack(
-                [np.repeat(guess.goal_costate[None], m, axis=0),
-                 (total - ends + steps) * s.dt]), s.time_weight, -s.dt)
-        if not np.isfinite(z).all():
+        segments = self._segments(x0, guess, (total - ends + steps) * s.dt)
+        if segments is None:
             return None
-        turns = np.zeros(n)
-        angles = list(sys.angle_dims)
-        turns[angles] = 2.0 * np.pi * np.round((x0 - z[0, :n])[angles] / (2.0 * np.pi))
-        start = z[0, :n] + turns
-        lams, xs = np.vstack([guess.costate[None], z[1:, n:]]), z[1:, :n] + turns
+        start, lams, xs = segments
         terminal = terminal_conditions(prob)
 
         def solve(at: np.ndarray, lams: np.ndarray, xs: np.ndarray):
@@ -674,6 +680,31 @@ class FunnelConnection:
 
     def note(self) -> str | None:
         return None
+
+
+def aimed_round(propagator: Propagator, stream: FunnelStream, search: AimedSearch,
+                x0: np.ndarray, duration: float, tried: float, best: float | None = None
+                ) -> tuple[bool, float, list[Edge] | None] | None:
+    """One round of the query's search for funnel extremals through ``x0`` (its start), then
+    the chain from ``x0`` along the pool's nearest extremal (`FunnelConnection.steer_from`,
+    its own extremal's chain included, extremals of up to ``duration``) where that lies within
+    the funnel's radius, `AIM_RETRY` nearer than the last one tried (at distance ``tried``)
+    and, with ``best``, its cost to go from there below it. None once the search's rounds are
+    done; else whether it steered, the distance of the last one tried, and the chain or None.
+    The rounds of a solve (`FunnelConnection._from_start`) and of the anytime improvement
+    (`improve.start_funnel`)."""
+    funnel = search.step(stream.build)
+    if funnel is None:
+        return None
+    radius = propagator.settings.funnel_radius
+    dist = search.distances(funnel)
+    j = int(np.argmin(dist)) if len(dist) else -1
+    if j < 0 or dist[j] > radius or dist[j] > AIM_RETRY * tried or \
+            (best is not None and funnel.cost_to_go[j] >= best):
+        return False, tried, None
+    chain = FunnelConnection(propagator, funnel, duration=duration).steer_from(
+        x0, dist[j : j + 1], np.array([j]), radius, own=True)
+    return True, float(dist[j]), chain
 
 
 def _nearest_of(found: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:

@@ -8,8 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rrtcolearn.planning.connections import FunnelConnection
-from rrtcolearn.planning.funnel import AIM_RETRY
+from rrtcolearn.planning.connections import aimed_round
 from rrtcolearn.planning.improve.common import costs_to_come, grafted, recorded
 from rrtcolearn.planning.tree import Plan
 
@@ -39,7 +38,6 @@ def start_funnel(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | Non
         else stream.aimed(tree.states[0], sys, prob.offset_to)
     if search is None:
         return recorded(plan, prop, None, "start_funnel", record)
-    radius = planner.settings.funnel_radius
     best = float(costs_to_come(tree, plan.path_nodes)[-1])
     x0 = tree.states[0]
     found, tried = None, np.inf
@@ -47,20 +45,12 @@ def start_funnel(planner: RRTCoLearn, plan: Plan, stop: Callable[[], bool] | Non
     # its state nearest the start below the path's cost): on the shipped cart-pole they
     # cost 4-7x the optimum, its anytime paths 1.0-1.3x
     while not (stop is not None and stop()) and search.cheapest < best:
-        funnel = search.step(stream.build)
-        if funnel is None:
+        done = aimed_round(prop, stream, search, x0, planner.funnel_reach[0], tried, best)
+        if done is None:
             break
         record["rounds"] += 1
-        # the pool's nearest extremal, at its nearest state, if new and within the radius
-        dist = search.distances(funnel)
-        j = int(np.argmin(dist)) if len(dist) else -1
-        if j < 0 or dist[j] > radius or dist[j] > AIM_RETRY * tried or \
-                funnel.cost_to_go[j] >= best:
-            continue
-        tried = float(dist[j])
-        record["tries"] += 1
-        chain = FunnelConnection(prop, funnel, duration=planner.funnel_reach[0]).steer_from(
-            x0, dist[j : j + 1], np.array([j]), radius, own=True)
+        steered, tried, chain = done
+        record["tries"] += steered
         cost = np.inf if chain is None else float(sum(e.cost for e in chain))
         if cost < best - 1e-9:
             best, found = cost, chain
